@@ -12,6 +12,7 @@ _LAZY = {
     "Trajectories": "data",
     "read_trajectories": "data",
     "write_trajectories": "data",
+    "validate_trajectories": "data",
 }
 
 

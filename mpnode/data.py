@@ -2,13 +2,20 @@
 
 `Trajectories` is the in-memory form every part of mpnode passes around; the
 reader validates every rule of the format and raises `InputError` naming the
-file and the field; the writer validates too and writes atomically.
+file and the field; the writer validates too and writes atomically.  Both use
+the one checker `validate_trajectories`.  h5py is imported inside the functions
+so that `import mpnode` stays light.
 """
+import math
+import numbers
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .graph import Graph
+from .atomic import atomic_path
+from .errors import InputError
+from .graph import Graph, check_csr
 
 
 @dataclass
@@ -63,3 +70,323 @@ class Trajectories:
     def graph_of(self, b):
         """The Graph trajectory ``b`` ran on."""
         return self.graphs[int(self.graph_index[b])]
+
+
+# ---- validation (shared by reader and writer) -----------------------------
+
+RESERVED_ATTRS = ("format", "format_version", "dt", "system")
+FORMAT_NAME = "mpnode.trajectories"
+FORMAT_VERSION = 1
+
+
+def validate_trajectories(traj, source):
+    """Raise InputError (naming ``source`` and the field) unless ``traj`` obeys the format.
+
+    The one checker behind both `read_trajectories` and `write_trajectories`, so a
+    file mpnode writes is always a file mpnode (and any careful reader) accepts.
+    Returns ``traj``.
+    """
+    dt = traj.dt
+    is_number = isinstance(dt, numbers.Real) and not isinstance(dt, (bool, np.bool_))
+    if not (is_number and math.isfinite(dt) and dt > 0):
+        raise InputError(source, "dt", f"is {dt!r}", "a finite number > 0")
+    if not isinstance(traj.system, str) or not traj.system.strip():
+        raise InputError(source, "system", f"is {traj.system!r}",
+                         "a non-empty string naming the system, e.g. 'lorenz'")
+
+    x = np.asarray(traj.x)
+    if x.ndim != 4:
+        raise InputError(source, "x", f"has shape {x.shape}", "a 4-D array [B, T+1, N, dx]")
+    minimum = (("B", 1, "one trajectory"), ("T+1", 2, "one step"), ("N", 1, "one node"),
+               ("dx", 1, "one state dimension"))
+    for size, (name, least, meaning) in zip(x.shape, minimum):
+        if size < least:
+            raise InputError(source, "x", f"has shape {x.shape}, so {name} = {size}",
+                             f"{name} >= {least}: at least {meaning}")
+    _check_float_values(x, "x", source)
+    B, T, N = x.shape[0], x.shape[1] - 1, x.shape[2]
+
+    if traj.u is not None:
+        u = np.asarray(traj.u)
+        if u.ndim != 4 or u.shape[:3] != (B, T, N) or u.shape[3] < 1:
+            raise InputError(source, "u", f"has shape {u.shape}",
+                             f"[B, T, N, du] = [{B}, {T}, {N}, du >= 1] to match x; omit u when there are no controls")
+        _check_float_values(u, "u", source)
+
+    graphs = traj.graphs
+    if not isinstance(graphs, (list, tuple)) or not graphs:
+        raise InputError(source, "graphs", f"is {graphs!r}", "a non-empty list of graphs (graphs/0, graphs/1, ...)")
+    for g, graph in enumerate(graphs):
+        if not isinstance(graph, Graph):
+            raise InputError(source, f"graphs/{g}", f"is a {type(graph).__name__}", "an mpnode.Graph")
+        check_csr(graph.indptr, graph.indices, N, graph.self_loops, source, f"graphs/{g}")
+
+    gi = np.asarray(traj.graph_index)
+    if gi.shape != (B,):
+        raise InputError(source, "graph_index", f"has shape {gi.shape}",
+                         f"shape ({B},): one graph number per trajectory")
+    if gi.dtype.kind not in "iu":
+        raise InputError(source, "graph_index", f"has dtype {gi.dtype}", "an integer dtype")
+    bad = (gi < 0) | (gi >= len(graphs))
+    if np.any(bad):
+        b = int(np.argmax(bad))
+        raise InputError(source, "graph_index",
+                         f"trajectory {b} names graph {gi[b]}, but there are {len(graphs)} graph(s)",
+                         f"values in 0..{len(graphs) - 1}")
+
+    for key in traj.attrs:
+        if key in RESERVED_ATTRS:
+            raise InputError(source, key, "is set in attrs, but it is a format attribute",
+                             "dt and system as Trajectories fields; format and format_version are written by mpnode")
+    return traj
+
+
+def _check_float_values(a, name, source):
+    """float32/float64 and finite; a violation names the first bad index."""
+    if a.dtype.kind != "f" or a.dtype.itemsize not in (4, 8):
+        raise InputError(source, name, f"has dtype {a.dtype}", "float32 or float64")
+    finite = np.isfinite(a)
+    if not finite.all():
+        idx = tuple(int(i) for i in np.argwhere(~finite)[0])
+        raise InputError(source, name, f"contains {a[idx]} at {list(idx)}", "finite values only (no NaN / inf)")
+
+
+# ---- reading --------------------------------------------------------------
+
+def read_trajectories(path):
+    """Read and validate a trajectory file; raise InputError naming the file and the field.
+
+    x and u keep their stored precision (float32 or float64, native byte order);
+    graph_index is int64 and is all zeros when the file has one graph and omits it.
+    """
+    import h5py
+
+    source = os.fspath(path)
+    try:
+        f = h5py.File(source, "r")
+    except FileNotFoundError:
+        raise InputError(source, "file", "does not exist", "an existing trajectory file") from None
+    except OSError as e:
+        raise InputError(source, "file", f"cannot be opened as HDF5 ({_one_line(e)})",
+                         "an HDF5 trajectory file (not truncated, not another format)") from None
+    try:
+        with f:
+            traj = _read_open_file(f, source)
+    except OSError as e:  # damage that only shows once data is read
+        raise InputError(source, "file", f"cannot be read ({_one_line(e)})", "an intact HDF5 file") from None
+    validate_trajectories(traj, source)
+    traj.dt = float(traj.dt)
+    traj.graph_index = traj.graph_index.astype(np.int64)
+    return traj
+
+
+def _read_open_file(f, source):
+    """Build a Trajectories from an open file, checking what only the file can get wrong."""
+    fmt = _plain(f.attrs.get("format"))
+    if fmt != FORMAT_NAME:
+        what = "is missing" if fmt is None else f"is {fmt!r}"
+        raise InputError(source, "format", what,
+                         f"the root attribute format = {FORMAT_NAME!r}, as mpnode trajectory files have")
+    version = _plain(f.attrs.get("format_version"))
+    if isinstance(version, bool) or not isinstance(version, int) or version != FORMAT_VERSION:
+        what = "is missing" if version is None else f"is {version!r}"
+        raise InputError(source, "format_version", what, f"the integer {FORMAT_VERSION}, the version this reader knows")
+    for name, meaning in (("dt", "the time step, a finite number > 0"), ("system", "a string naming the system")):
+        if name not in f.attrs:
+            raise InputError(source, name, "is missing", f"a root attribute {name}: {meaning}")
+    attrs = {k: _plain(v) for k, v in f.attrs.items() if k not in RESERVED_ATTRS}
+
+    x = _read_array(f, "x", source)
+    u = _read_array(f, "u", source) if "u" in f else None
+    graphs = _read_graphs(f, source)
+    if "graph_index" in f:
+        graph_index = _read_array(f, "graph_index", source)
+    elif len(graphs) == 1:
+        graph_index = np.zeros(x.shape[:1], dtype=np.int64)
+    else:
+        raise InputError(source, "graph_index", f"is missing, but the file has {len(graphs)} graphs",
+                         "a dataset graph_index [B] naming the graph of each trajectory "
+                         "(it may be omitted only when there is one graph)")
+    return Trajectories(x=x, graphs=graphs, dt=_plain(f.attrs["dt"]), system=_plain(f.attrs["system"]),
+                        u=u, graph_index=graph_index, attrs=attrs,
+                        params=_read_group(f, "params", source), aux=_read_group(f, "aux", source))
+
+
+def _read_graphs(f, source):
+    """The graphs/ group as a list of Graph; names must be 0..G-1 and arrays integer."""
+    group = _member(f, "graphs", "group", source)
+    names = list(group)
+    if not names:
+        raise InputError(source, "graphs", "has no graphs", "at least one group graphs/0 with indptr and indices")
+    if sorted(names) != sorted(str(g) for g in range(len(names))):
+        raise InputError(source, "graphs", f"has members {sorted(names, key=lambda s: (len(s), s))}",
+                         f"groups named 0..{len(names) - 1} with no gaps")
+    graphs = []
+    for g in range(len(names)):
+        where = f"graphs/{g}"
+        attrs = _member(f, where, "group", source).attrs
+        indptr = _read_array(f, f"{where}/indptr", source)
+        indices = _read_array(f, f"{where}/indices", source)
+        for name, a in ((f"{where}/indptr", indptr), (f"{where}/indices", indices)):
+            if a.size and a.dtype.kind not in "iu":  # checked before Graph casts to int64
+                raise InputError(source, name, f"has dtype {a.dtype}", "an integer dtype")
+        flag = _plain(attrs.get("self_loops", 0))
+        if not isinstance(flag, int) or flag not in (0, 1):  # bool is an int: True/False accepted
+            raise InputError(source, where, f"has attribute self_loops = {flag!r}",
+                             "self_loops = 1 (self-loops allowed), 0 or absent")
+        graphs.append(Graph(indptr, indices, self_loops=flag == 1))
+    return graphs
+
+
+def _read_group(f, name, source):
+    """Every dataset under group ``name`` (absent: empty), keyed by path relative to it."""
+    import h5py
+
+    if name not in f:
+        return {}
+    group = _member(f, name, "group", source)
+    out = {}
+
+    def visit(rel, obj):
+        if isinstance(obj, h5py.Dataset):
+            out[rel] = _values(obj)
+
+    group.visititems(visit)
+    return out
+
+
+def _member(f, name, kind, source):
+    """f[name], which must exist and be a 'group' or a 'dataset'."""
+    import h5py
+
+    if name not in f:
+        raise InputError(source, name, "is missing", f"a {kind} {name}")
+    obj = f[name]
+    if not isinstance(obj, h5py.Group if kind == "group" else h5py.Dataset):
+        raise InputError(source, name, f"is not a {kind}", f"a {kind} {name}")
+    return obj
+
+
+def _read_array(f, name, source):
+    """The dataset f[name] (which must exist) as an ndarray."""
+    return _values(_member(f, name, "dataset", source))
+
+
+def _values(ds):
+    """A dataset's contents as an ndarray: strings decoded, numbers in native byte order."""
+    import h5py
+
+    if h5py.check_string_dtype(ds.dtype) is not None:
+        return np.asarray(ds.asstr()[()])
+    a = np.asarray(ds[()])
+    if a.dtype.kind in "iuf" and not a.dtype.isnative:
+        a = a.astype(a.dtype.newbyteorder("="))
+    return a
+
+
+def _plain(v):
+    """An attribute value as plain Python: numpy scalars -> int/float/bool, bytes -> str."""
+    if isinstance(v, str):
+        return str(v)
+    if isinstance(v, bytes):
+        try:
+            return v.decode("utf-8")
+        except UnicodeDecodeError:
+            return bytes(v)
+    if isinstance(v, np.ndarray):
+        return [_plain(e) for e in v.tolist()] if v.dtype.kind in "SOU" else v
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def _one_line(e):
+    return " ".join(str(e).split())
+
+
+# ---- writing --------------------------------------------------------------
+
+def write_trajectories(path, traj):
+    """Validate ``traj`` and write it to ``path`` atomically: the complete file or nothing.
+
+    graph_index is stored only when there are several graphs (the spec omits it for one);
+    graphs whose ``self_loops`` is True get the attribute ``self_loops = 1``.
+    """
+    import h5py
+
+    path = os.fspath(path)
+    validate_trajectories(traj, path)
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs.update(format=FORMAT_NAME, format_version=FORMAT_VERSION, dt=float(traj.dt), system=traj.system)
+        f["x"] = np.asarray(traj.x)
+        if traj.u is not None:
+            f["u"] = np.asarray(traj.u)
+        if len(traj.graphs) > 1:
+            f["graph_index"] = np.asarray(traj.graph_index, dtype=np.int64)
+        for g, graph in enumerate(traj.graphs):
+            group = f.create_group(f"graphs/{g}")
+            group["indptr"] = graph.indptr
+            group["indices"] = graph.indices
+            if graph.self_loops:
+                group.attrs["self_loops"] = 1
+        extras = [(f.attrs, key, value) for key, value in traj.attrs.items()]
+        extras += [(f, f"{group}/{name}", value) for group in ("params", "aux")
+                   for name, value in getattr(traj, group).items()]
+        for target, key, value in extras:
+            try:
+                target[key] = value
+            except (TypeError, ValueError) as e:
+                raise InputError(path, key, f"cannot be stored in HDF5 ({_one_line(e)})",
+                                 "numbers, strings or arrays of them") from None
+
+
+# ---- summary --------------------------------------------------------------
+
+def summarize(traj):
+    """A JSON-ready description of ``traj``: sizes, step, dtypes, graphs, parameters, attributes.
+
+    Small arrays (<= 8 entries) in params/aux are shown with their values.
+    """
+    used = np.bincount(np.asarray(traj.graph_index, dtype=np.int64), minlength=len(traj.graphs))
+    return {
+        "system": traj.system,
+        "B": traj.n_trajectories,
+        "T": traj.horizon,
+        "N": traj.n_nodes,
+        "dx": traj.state_dim,
+        "du": traj.control_dim,
+        "dt": float(traj.dt),
+        "duration": float(traj.dt) * traj.horizon,
+        "x_dtype": str(traj.x.dtype),
+        "u_dtype": None if traj.u is None else str(traj.u.dtype),
+        "graphs": [{"nodes": g.n_nodes, "edges": g.n_edges, "self_loops": bool(g.self_loops),
+                    "trajectories": int(used[i])} for i, g in enumerate(traj.graphs)],
+        "params": {name: _describe(a) for name, a in traj.params.items()},
+        "aux": {name: _describe(a) for name, a in traj.aux.items()},
+        "attrs": {key: _jsonable(v) for key, v in traj.attrs.items()},
+    }
+
+
+def _describe(a):
+    a = np.asarray(a)
+    out = {"shape": list(a.shape), "dtype": str(a.dtype)}
+    if a.size <= 8:
+        out["value"] = _jsonable(a)
+    return out
+
+
+def _jsonable(v):
+    """Plain JSON values; NaN/inf become the strings "nan"/"inf" so the output stays valid JSON."""
+    if isinstance(v, np.ndarray):
+        return _jsonable(v.tolist())
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(e) for e in v]
+    if isinstance(v, np.generic):
+        return _jsonable(v.item())
+    if isinstance(v, float) and not math.isfinite(v):
+        return str(v)
+    if isinstance(v, bytes):
+        return v.decode("utf-8", errors="replace")
+    if v is None or isinstance(v, (bool, int, float, str)):
+        return v
+    return str(v)
