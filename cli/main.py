@@ -34,3 +34,4 @@ def main():
 
 # Each command module adds its commands to `main` on import.
 from . import inspect_cmd  # noqa: E402,F401
+from . import generate_cmd  # noqa: E402,F401

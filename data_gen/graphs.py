@@ -1,0 +1,111 @@
+"""Graphs the reference systems run on, built with networkx from a seed and kept as CSR.
+
+A `GraphSpec` names a builder and its arguments, so a scene (and the file it produces)
+says exactly which call made each graph; `build` returns `mpnode.graph.Graph` objects
+(CSR: sparse graphs stay sparse).
+"""
+from dataclasses import dataclass, field
+
+import networkx as nx
+import numpy as np
+
+from mpnode.errors import InputError
+from mpnode.graph import Graph
+
+#: builder -> (networkx function, names of its arguments after n, in call order)
+RANDOM_BUILDERS = {
+    "gnp": (nx.gnp_random_graph, ("p",)),
+    "gnm": (nx.gnm_random_graph, ("m",)),
+    "barabasi_albert": (nx.barabasi_albert_graph, ("m",)),
+    "watts_strogatz": (nx.watts_strogatz_graph, ("k", "p")),
+}
+#: builders that need no seed: every node hears every other, or an explicit edge list
+FIXED_BUILDERS = ("complete", "edges")
+BUILDERS = tuple(RANDOM_BUILDERS) + FIXED_BUILDERS
+
+
+@dataclass(frozen=True)
+class GraphSpec:
+    """How to build the graph(s) of a scene.
+
+    builder : one of BUILDERS
+    n_nodes : N
+    args : the builder's arguments after N, e.g. {"k": 5, "p": 0.5} for watts_strogatz
+    seeds : one networkx seed per graph (random builders); a file gets one graph per seed
+    edges : (sender, receiver) pairs, shape (E, 2), for builder "edges"
+    directed : for "edges": False adds each pair in both directions
+    """
+
+    builder: str
+    n_nodes: int
+    args: dict = field(default_factory=dict)
+    seeds: tuple = ()
+    edges: tuple = ()
+    directed: bool = False
+
+    @property
+    def n_graphs(self):
+        return len(self.seeds) if self.builder in RANDOM_BUILDERS else 1
+
+    def calls(self):
+        """One human-readable line per graph saying exactly how it was built."""
+        if self.builder == "complete":
+            return [f"complete graph on {self.n_nodes} nodes, no self-loops"]
+        if self.builder == "edges":
+            kind = "directed" if self.directed else "undirected"
+            return [f"{kind} edge list on {self.n_nodes} nodes: {[list(e) for e in self.edges]}"]
+        fn, names = RANDOM_BUILDERS[self.builder]
+        args = ", ".join(f"{a}={self.args[a]!r}" for a in names)
+        return [f"networkx.{fn.__name__}(n={self.n_nodes}, {args}, seed={s})" for s in self.seeds]
+
+    def build(self):
+        """The graphs, one per seed (or the single fixed graph): list of Graph."""
+        if self.builder == "complete":
+            return [Graph.complete(self.n_nodes)]
+        if self.builder == "edges":
+            # Graph.from_edges takes (receiver, sender); a scene lists (sender, receiver)
+            pairs = np.asarray(self.edges, dtype=np.int64).reshape(-1, 2)[:, ::-1]
+            return [Graph.from_edges(self.n_nodes, pairs, directed=self.directed)]
+        fn, names = RANDOM_BUILDERS[self.builder]
+        return [Graph.from_networkx(fn(self.n_nodes, *(self.args[a] for a in names), seed=s)) for s in self.seeds]
+
+    def describe(self):
+        """Root attributes recording what was built (the CSR itself goes to graphs/<g>)."""
+        out = {"graph_builder": self.builder, "graph_calls": self.calls()}
+        if self.builder in RANDOM_BUILDERS:
+            out["graph_seeds"] = np.asarray(self.seeds, dtype=np.int64)
+            out.update({f"graph_{a}": v for a, v in self.args.items()})
+        if self.builder == "watts_strogatz":
+            # networkx joins each node to k//2 neighbours per side: an odd k builds a ring of degree k-1
+            out["graph_ring_degree"] = 2 * (self.args["k"] // 2)
+        return out
+
+
+def check_args(builder, args, source, field):
+    """Raise InputError unless ``args`` are exactly the arguments ``builder`` takes."""
+    if builder not in BUILDERS:
+        raise InputError(source, field, f"unknown graph builder {builder!r}", "one of " + ", ".join(BUILDERS))
+    wanted = set(RANDOM_BUILDERS[builder][1]) if builder in RANDOM_BUILDERS else set()
+    if set(args) != wanted:
+        raise InputError(source, field, f"{builder} got arguments {sorted(args)}",
+                         f"exactly {sorted(wanted)}" if wanted else "no further arguments")
+
+
+# ---- the spec's graphs (systems.md) ------------------------------------------------
+def gene_graph(kind, n_nodes, seeds):
+    """gene: er = gnp(N, 0.5), ba = barabasi_albert(N, N/2), ws = watts_strogatz(N, N/2, 0.5)."""
+    half = n_nodes // 2
+    return {
+        "er": GraphSpec("gnp", n_nodes, {"p": 0.5}, tuple(seeds)),
+        "ba": GraphSpec("barabasi_albert", n_nodes, {"m": half}, tuple(seeds)),
+        "ws": GraphSpec("watts_strogatz", n_nodes, {"k": half, "p": 0.5}, tuple(seeds)),
+    }[kind]
+
+
+def kuramoto_graph(kind, n_nodes, seeds):
+    """kuramoto: ba = barabasi_albert(N, 5), er = gnm(N, 5) (5 edges), ws = watts_strogatz(N, 5, 0.5)."""
+    return {
+        "er": GraphSpec("gnm", n_nodes, {"m": 5}, tuple(seeds)),
+        "ba": GraphSpec("barabasi_albert", n_nodes, {"m": 5}, tuple(seeds)),
+        "ws": GraphSpec("watts_strogatz", n_nodes, {"k": 5, "p": 0.5}, tuple(seeds)),
+    }[kind]

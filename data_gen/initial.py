@@ -1,0 +1,43 @@
+"""Initial-state samplers: ``sampler(rng, system, n_nodes) -> x0, shape (N, dx)``.
+
+A sampler draws only from the generator it is given, so a trajectory's initial state
+depends on its own seed alone (not on the worker or on the other trajectories).
+"""
+import math
+
+import numpy as np
+
+from mpnode.errors import InputError
+
+
+def uniform(rng, system, n_nodes):
+    """The spec's default: every coordinate uniform in (system.low, system.high) per dimension."""
+    return rng.uniform(system.low, system.high, size=(n_nodes, system.state_dim))
+
+
+def hotspots(rng, system, n_nodes):
+    """Gene: three random rectangles of the sqrt(N) x sqrt(N) grid at uniform(30, 50), zero elsewhere.
+
+    Rectangles may overlap; each covers rows r0..r1 and columns c0..c1 (inclusive) with the
+    corners drawn uniformly on the grid.  Nodes are numbered row after row.
+    """
+    side = math.isqrt(n_nodes)
+    grid = np.zeros((side, side))
+    for _ in range(3):
+        r0, r1 = np.sort(rng.integers(0, side, size=2))
+        c0, c1 = np.sort(rng.integers(0, side, size=2))
+        grid[r0:r1 + 1, c0:c1 + 1] = rng.uniform(30.0, 50.0, size=(r1 - r0 + 1, c1 - c0 + 1))
+    return grid.reshape(n_nodes, 1)
+
+
+SAMPLERS = {"uniform": uniform, "hotspots": hotspots}
+
+
+def get_sampler(name, system, n_nodes, source, field):
+    """The sampler called ``name``, checked to make sense for ``system`` on ``n_nodes`` nodes."""
+    if name not in system.samplers:
+        raise InputError(source, field, f"sampler {name!r} is not defined for {system.name}",
+                         "one of " + ", ".join(system.samplers))
+    if name == "hotspots" and math.isqrt(n_nodes) ** 2 != n_nodes:
+        raise InputError(source, field, f"hotspots needs a square grid but N = {n_nodes}", "N a perfect square")
+    return SAMPLERS[name]

@@ -1,0 +1,227 @@
+"""Scenes: everything that decides a generated data set, by name or from a TOML file.
+
+A Scene is system + parameters + graph + initial-state sampler + B, T, dt + seeds.
+The built-in scenes are the data sets of the MP-NODE paper (../shared/spec/systems.md);
+anything else is a TOML file with this schema (example: scenes/example_gene_ring.toml)::
+
+    description  = "one line"   # optional
+    system       = "gene"       # required: coupled_pendulum | lorenz | gene | kuramoto
+    trajectories = 1000         # optional, B >= 1
+    horizon      = 50           # optional, T >= 1 steps
+    dt           = 0.05         # optional, > 0
+    seed         = 0            # optional, initial states (trajectory b uses spawn_key (b,))
+    system_seed  = 0            # optional, drawn parameters (lorenz H, kuramoto omega)
+    initial      = "uniform"    # optional: uniform (the spec's ranges) | hotspots (gene, square N)
+    integrator   = "DOP853"     # optional: a scipy solve_ivp method
+    rtol         = 1e-9         # optional
+    atol         = 1e-9         # optional
+    [params]                    # optional: the system's scalar parameters, spec names (e.g. b, f, h)
+    [graph]                     # required
+    builder  = "edges"          # complete | edges | gnp | gnm | barabasi_albert | watts_strogatz
+    nodes    = 8                # N
+    edges    = [[0, 1], [1, 2]] # edges only: [sender, receiver] pairs
+    directed = false            # edges only, optional: false adds both directions
+    seeds    = [1, 2]           # random builders: one graph per seed (or seed = 1)
+    p = 0.5; m = 5; k = 4       # random builders: their networkx arguments (gnp: p, gnm: m,
+                                # barabasi_albert: m, watts_strogatz: k, p)
+
+Unknown keys, wrong types and missing keys raise InputError(file, key, problem, expected).
+"""
+import os
+import tomllib
+from dataclasses import dataclass, field
+
+from mpnode.errors import InputError
+
+from .graphs import BUILDERS, RANDOM_BUILDERS, GraphSpec, check_args, gene_graph, kuramoto_graph
+from .initial import get_sampler
+from .systems import get_system
+
+#: the scipy solve_ivp methods a scene may name
+INTEGRATORS = ("RK23", "RK45", "DOP853", "Radau", "BDF", "LSODA")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A data set to generate; see the module docstring for the meaning of each field."""
+
+    name: str
+    description: str
+    system: str
+    graph: GraphSpec
+    params: dict = field(default_factory=dict)
+    initial: str = "uniform"
+    trajectories: int = 1000
+    horizon: int = 50
+    dt: float = 0.05
+    seed: int = 0
+    system_seed: int = 0
+    integrator: str = "DOP853"
+    rtol: float = 1e-9
+    atol: float = 1e-9
+
+    def summary(self):
+        """One line for `mpnode scenes`."""
+        return (f"{self.system}, N={self.graph.n_nodes}, B={self.trajectories}, T={self.horizon}, "
+                f"dt={self.dt:g}: {self.description}")
+
+
+def _lorenz(k, coupling, level):
+    return Scene(f"lorenz{k}{level}", f"{k} Lorenz oscillators, linear coupling ||H||_F = {coupling:g}",
+                 "lorenz", GraphSpec("complete", k), {"coupling": coupling})
+
+
+def _gene(n, kind, seeds=(1,)):
+    multi = len(seeds) > 1
+    graphs = f"{len(seeds)} {kind.upper()} graphs (seeds {seeds[0]}..{seeds[-1]})" if multi else f"{kind.upper()} graph"
+    return Scene(f"gene{n}_{kind}" + ("_multi" if multi else ""),
+                 f"Michaelis-Menten gene regulation on {n} nodes, {graphs}", "gene", gene_graph(kind, n, seeds))
+
+
+def _kuramoto(kind):
+    return Scene(f"kuramoto10_{kind}", f"10 Kuramoto nodes (3 phases each), {kind.upper()} graph",
+                 "kuramoto", kuramoto_graph(kind, 10, (1,)))
+
+
+BUILTIN = {
+    s.name: s
+    for s in [
+        Scene("coupled_pendulum", "two pendulums joined by a spring", "coupled_pendulum",
+              GraphSpec("edges", 2, edges=((0, 1),))),
+        _lorenz(3, 0.01, ""), _lorenz(7, 0.01, ""), _lorenz(10, 0.01, ""),
+        _lorenz(10, 1.0, "_medium"), _lorenz(10, 5.0, "_high"),
+        *(_gene(n, kind) for n in (16, 64) for kind in ("er", "ba", "ws")),
+        _gene(16, "ba", seeds=(1, 2, 3, 4, 5)),
+        *(_kuramoto(kind) for kind in ("er", "ba", "ws")),
+    ]
+}
+
+
+def load_scene(name_or_path):
+    """A built-in scene by name, or the scene in a TOML file (a path ending in .toml)."""
+    if name_or_path in BUILTIN:
+        return BUILTIN[name_or_path]
+    if str(name_or_path).endswith(".toml"):
+        return read_scene(name_or_path)
+    raise InputError("SCENE", name_or_path, "is neither a built-in scene nor a .toml file",
+                     "one of " + ", ".join(BUILTIN) + " (see `mpnode scenes`), or a path to a .toml scene")
+
+
+def check_scene(scene, source):
+    """Raise InputError(source, key, ...) unless ``scene`` can be generated (graphs not built)."""
+    system = get_system(scene.system, source, "system")
+    for key, value in scene.params.items():
+        if key not in system.defaults:
+            raise InputError(source, f"params.{key}", f"is not a parameter of {system.name}",
+                             "one of " + ", ".join(system.defaults))
+    check_args(scene.graph.builder, scene.graph.args, source, "graph")
+    if scene.graph.builder in RANDOM_BUILDERS and not scene.graph.seeds:
+        raise InputError(source, "graph.seeds", "is empty", "at least one seed")
+    for key, value in (("trajectories", scene.trajectories), ("horizon", scene.horizon),
+                       ("graph.nodes", scene.graph.n_nodes)):
+        if value < 1:
+            raise InputError(source, key, f"is {value}", "an integer >= 1")
+    for key, value in (("dt", scene.dt), ("rtol", scene.rtol), ("atol", scene.atol)):
+        if not value > 0:
+            raise InputError(source, key, f"is {value}", "a number > 0")
+    if scene.integrator not in INTEGRATORS:
+        raise InputError(source, "integrator", f"unknown method {scene.integrator!r}",
+                         "one of " + ", ".join(INTEGRATORS))
+    get_sampler(scene.initial, system, scene.graph.n_nodes, source, "initial")
+
+
+# ---- TOML -----------------------------------------------------------------------------
+_TOP = {"description": str, "system": str, "trajectories": int, "horizon": int, "dt": float,
+        "seed": int, "system_seed": int, "initial": str, "integrator": str, "rtol": float,
+        "atol": float, "params": dict, "graph": dict}
+_GRAPH = {"builder": str, "nodes": int, "edges": list, "directed": bool, "seed": int, "seeds": list,
+          "p": float, "m": int, "k": int}
+_TYPE_NAMES = {str: "a string", int: "an integer", float: "a number", dict: "a table", list: "an array",
+               bool: "true or false"}
+
+
+def read_scene(path):
+    """The Scene described by the TOML file ``path`` (schema in the module docstring)."""
+    source = os.fspath(path)
+    try:
+        with open(source, "rb") as f:
+            doc = tomllib.load(f)
+    except FileNotFoundError:
+        raise InputError(source, "file", "does not exist", "a TOML scene file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(source, "TOML", str(e), "valid TOML") from None
+    _check_keys(doc, _TOP, source, "", required=("system", "graph"))
+    g = doc["graph"]
+    _check_keys(g, _GRAPH, source, "graph.", required=("builder", "nodes"))
+    builder = g["builder"]
+    if builder not in BUILDERS:
+        raise InputError(source, "graph.builder", f"unknown builder {builder!r}", "one of " + ", ".join(BUILDERS))
+    system = get_system(doc["system"], source, "system")
+    params = doc.get("params", {})
+    _check_keys(params, dict.fromkeys(system.defaults, float), source, "params.")
+    scene = Scene(
+        name=os.path.splitext(os.path.basename(source))[0],
+        description=doc.get("description", f"scene file {source}"),
+        system=system.name,
+        graph=_graph_spec(g, source),
+        params={k: float(v) for k, v in params.items()},
+        **{k: (float(doc[k]) if _TOP[k] is float else doc[k])
+           for k in ("initial", "trajectories", "horizon", "dt", "seed", "system_seed", "integrator", "rtol", "atol")
+           if k in doc},
+    )
+    check_scene(scene, source)
+    return scene
+
+
+def _graph_spec(g, source):
+    builder, n = g["builder"], g["nodes"]
+    allowed = {"builder", "nodes"} | (
+        {"edges", "directed"} if builder == "edges"
+        else {"seed", "seeds", *RANDOM_BUILDERS[builder][1]} if builder in RANDOM_BUILDERS else set())
+    for key in g:
+        if key not in allowed:
+            raise InputError(source, f"graph.{key}", f"does not apply to builder {builder!r}",
+                             "only " + ", ".join(sorted(allowed)))
+    if builder == "edges":
+        edges = g.get("edges")
+        if edges is None:
+            raise InputError(source, "graph.edges", "is missing", "an array of [sender, receiver] pairs")
+        for e in edges:
+            if not (isinstance(e, list) and len(e) == 2 and all(_is(v, int) for v in e)):
+                raise InputError(source, "graph.edges", f"contains {e!r}", "[sender, receiver] pairs of integers")
+            if not all(0 <= v < n for v in e):
+                raise InputError(source, "graph.edges", f"pair {e} names a node outside 0..{n - 1}",
+                                 f"ids in 0..{n - 1}")
+        return GraphSpec("edges", n, edges=tuple(map(tuple, edges)), directed=g.get("directed", False))
+    if builder == "complete":
+        return GraphSpec("complete", n)
+    if ("seed" in g) == ("seeds" in g):
+        raise InputError(source, "graph.seeds", "give exactly one of seed and seeds", "seed = 1 or seeds = [1, 2]")
+    seeds = g["seeds"] if "seeds" in g else [g["seed"]]
+    if not seeds or not all(_is(s, int) for s in seeds):
+        raise InputError(source, "graph.seeds", f"is {seeds!r}", "a non-empty array of integers")
+    names = RANDOM_BUILDERS[builder][1]
+    missing = [a for a in names if a not in g]
+    if missing:
+        raise InputError(source, f"graph.{missing[0]}", "is missing", f"{builder} needs {', '.join(names)}")
+    return GraphSpec(builder, n, {a: g[a] for a in names}, tuple(seeds))
+
+
+def _is(value, kind):
+    """TOML type check: bool is not an int, and an integer is a fine float."""
+    if kind is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, kind)
+
+
+def _check_keys(table, types, source, prefix, required=()):
+    for key in required:
+        if key not in table:
+            raise InputError(source, prefix + key, "is missing", _TYPE_NAMES[types[key]])
+    for key, value in table.items():
+        if key not in types:
+            raise InputError(source, prefix + key, "is not a known key", "one of " + ", ".join(types))
+        if not _is(value, types[key]):
+            raise InputError(source, prefix + key, f"is {value!r}", _TYPE_NAMES[types[key]])

@@ -1,0 +1,191 @@
+"""The reference physics of ../shared/spec/systems.md: right-hand sides and parameters.
+
+Every right-hand side ``f(t, y, ...)`` takes the flat state of ONE trajectory,
+``y : ndarray, shape (N*dx,)`` laid out node after node (``y.reshape(N, dx)``), and
+returns ``dy/dt`` of the same shape, so it plugs into ``scipy.integrate.solve_ivp``
+as is.  Nothing here knows about learning, files or scenes.
+"""
+from dataclasses import dataclass
+from functools import partial
+from typing import Callable
+
+import numpy as np
+import scipy.sparse
+
+from mpnode.errors import InputError
+from mpnode.graph import Graph
+
+#: the pendulum is refused where |cos(theta)| falls below this (the RHS divides by it)
+PENDULUM_COS_MIN = 1e-6
+
+
+# ---- right-hand sides ---------------------------------------------------------------
+def pendulum_rhs(t, y, m, l, k, g):
+    """Two spring-coupled pendulums; y = [theta_0, omega_0, theta_1, omega_1], shape (4,).
+
+    theta_i'' = (sin(th_i) (m (l om_i^2 - g) - k l) + k l sin(th_j)) / (m l cos(th_i)),
+    j the other node.
+    """
+    theta, omega = y[0::2], y[1::2]
+    other = theta[::-1]
+    dy = np.empty_like(y)
+    dy[0::2] = omega
+    dy[1::2] = (np.sin(theta) * (m * (l * omega**2 - g) - k * l) + k * l * np.sin(other)) / (m * l * np.cos(theta))
+    return dy
+
+
+def pendulum_guard(t, y):
+    """min_i |cos(theta_i)| - PENDULUM_COS_MIN: positive while the pendulum RHS is defined.
+
+    y : shape (4,) or (4, T) (then one value per column).
+    """
+    return np.min(np.abs(np.cos(y[0::2])), axis=0) - PENDULUM_COS_MIN
+
+
+def lorenz_rhs(t, y, sigma, rho, beta, H):
+    """k Lorenz oscillators coupled linearly: X' = F(X) + H X; y shape (3k,), H shape (3k, 3k)."""
+    x, yy, z = y[0::3], y[1::3], y[2::3]
+    dy = H @ y
+    dy[0::3] += sigma * (yy - x)
+    dy[1::3] += x * (rho - z) - yy
+    dy[2::3] += x * yy - beta * z
+    return dy
+
+
+def gene_rhs(t, y, b, f, h, A):
+    """Michaelis-Menten gene regulation: x_i' = -b x_i^f + sum_{j in N(i)} x_j^h / (1 + x_j^h).
+
+    y : shape (N,);  A : sparse (N, N), A[i, j] = 1 when i hears j (the CSR graph).
+    """
+    xh = y**h
+    return -b * y**f + A @ (xh / (1 + xh))
+
+
+def kuramoto_rhs(t, y, omega, K, A):
+    """Kuramoto oscillators with three phases per node, element-wise on the phases.
+
+    theta_i' = omega + K sum_{j in N(i)} sin(theta_j - theta_i), computed as
+    cos(theta_i) (A sin theta)_i - sin(theta_i) (A cos theta)_i (sin(a-b) expanded), so the
+    neighbour sum is two sparse products.  y : shape (3N,), omega : shape (3,), A : sparse (N, N).
+    """
+    theta = y.reshape(-1, 3)
+    s, c = np.sin(theta), np.cos(theta)
+    coupling = c * (A @ s) - s * (A @ c)
+    return (omega + K * coupling).ravel()
+
+
+def adjacency(graph):
+    """The CSR graph as a scipy sparse matrix (N, N) of ones; sparse graphs stay sparse."""
+    n = graph.n_nodes
+    return scipy.sparse.csr_array((np.ones(graph.n_edges), graph.indices, graph.indptr), shape=(n, n))
+
+
+# ---- parameters that are drawn, not given -------------------------------------------
+def lorenz_coupling(n_nodes, coupling, rng):
+    """H, shape (3k, 3k): uniform(0, 1), 3x3 diagonal blocks zeroed, scaled to ||H||_F = coupling (k > 1)."""
+    H = rng.uniform(0.0, 1.0, size=(3 * n_nodes, 3 * n_nodes))
+    for i in range(n_nodes):
+        H[3 * i:3 * i + 3, 3 * i:3 * i + 3] = 0.0
+    if n_nodes > 1:
+        H *= coupling / np.linalg.norm(H)
+    return H
+
+
+def kuramoto_frequencies(rng):
+    """omega, shape (3,): one standard normal draw, shared by every node."""
+    return rng.standard_normal(3)
+
+
+# ---- the registry -------------------------------------------------------------------
+@dataclass(frozen=True)
+class System:
+    """One reference system: its state layout, parameters and the physics wiring.
+
+    defaults : scalar parameters under the spec's names (root attributes of a file)
+    low, high : per-dimension bounds of the spec's uniform initial state, shape (dx,)
+    draw : (scalars, n_nodes, rng) -> dict of drawn array parameters (the `params/` group)
+    rhs : (scalars + arrays, graph) -> f(t, y) for solve_ivp (a picklable partial)
+    guard : solve_ivp terminal event, positive while the state is valid; None if always valid
+    n_nodes : the only node count the system is defined for, or None
+    complete : the physics couples every pair (the graph must be complete)
+    samplers : initial-state samplers that make sense for it (see initial.py)
+    """
+
+    name: str
+    state_dim: int
+    defaults: dict
+    low: tuple
+    high: tuple
+    draw: Callable
+    rhs: Callable
+    guard: Callable = None
+    n_nodes: int = None
+    complete: bool = False
+    samplers: tuple = ("uniform",)
+
+    def check_graph(self, graph, source, field):
+        """Raise InputError unless ``graph`` is one this system's physics is defined on."""
+        n = graph.n_nodes
+        if self.n_nodes is not None and n != self.n_nodes:
+            raise InputError(source, field, f"{self.name} has {n} nodes", f"exactly {self.n_nodes} nodes")
+        if self.complete:
+            if not graph.equals(Graph.complete(n)):
+                raise InputError(source, field, f"{self.name} needs every node coupled to every other",
+                                 "a complete graph without self-loops")
+
+
+def _pendulum(p, graph):
+    return partial(pendulum_rhs, m=p["m"], l=p["l"], k=p["k"], g=p["g"])
+
+
+def _lorenz(p, graph):
+    return partial(lorenz_rhs, sigma=p["sigma"], rho=p["rho"], beta=p["beta"], H=np.asarray(p["H"]))
+
+
+def _gene(p, graph):
+    return partial(gene_rhs, b=p["b"], f=p["f"], h=p["h"], A=adjacency(graph))
+
+
+def _kuramoto(p, graph):
+    return partial(kuramoto_rhs, omega=np.asarray(p["omega"]), K=p["K"], A=adjacency(graph))
+
+
+def _nothing_drawn(p, n_nodes, rng):
+    return {}
+
+
+SYSTEMS = {
+    s.name: s
+    for s in [
+        System("coupled_pendulum", 2, dict(m=1.0, l=1.5, k=2.0, g=9.81),
+               low=(-np.pi / 4, -0.5), high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_pendulum,
+               guard=pendulum_guard, n_nodes=2, complete=True),
+        System("lorenz", 3, dict(sigma=10.0, rho=28.0, beta=8.0 / 3.0, coupling=0.01),
+               low=(-1.0,) * 3, high=(1.0,) * 3,
+               draw=lambda p, n, rng: {"H": lorenz_coupling(n, p["coupling"], rng)}, rhs=_lorenz,
+               complete=True),
+        System("gene", 1, dict(b=1.0, f=1.0, h=2.0),
+               low=(0.0,), high=(50.0,), draw=_nothing_drawn, rhs=_gene,
+               samplers=("uniform", "hotspots")),
+        System("kuramoto", 3, dict(K=1.0 / 3.0),
+               low=(-1.0,) * 3, high=(1.0,) * 3,
+               draw=lambda p, n, rng: {"omega": kuramoto_frequencies(rng)}, rhs=_kuramoto),
+    ]
+}
+
+
+def get_system(name, source="system", field="system"):
+    """The System called ``name``; InputError listing the known ones otherwise."""
+    try:
+        return SYSTEMS[name]
+    except (KeyError, TypeError):
+        raise InputError(source, field, f"unknown system {name!r}", "one of " + ", ".join(SYSTEMS)) from None
+
+
+def make_rhs(system, params, graph):
+    """f(t, y) for one trajectory of ``system`` on ``graph``.
+
+    params : mapping holding at least the system's scalar parameters and drawn arrays
+    (e.g. a file's root attributes merged with its `params/` group); extra keys are ignored.
+    """
+    return get_system(system).rhs(params, graph)

@@ -1,0 +1,90 @@
+"""Scenes: the built-in table and the TOML schema (data_gen/scenes.py)."""
+import os
+from dataclasses import replace
+
+import pytest
+
+import mpnode.data_gen
+from mpnode.data_gen import BUILTIN, generate, load_scene, read_scene
+from mpnode.data_gen.scenes import check_scene
+from mpnode.errors import InputError
+
+EXAMPLE = os.path.join(os.path.dirname(mpnode.data_gen.__file__), "scenes", "example_gene_ring.toml")
+
+EXPECTED = ["coupled_pendulum", "lorenz3", "lorenz7", "lorenz10", "lorenz10_medium", "lorenz10_high",
+            "gene16_er", "gene16_ba", "gene16_ws", "gene64_er", "gene64_ba", "gene64_ws", "gene16_ba_multi",
+            "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws"]
+
+
+def test_builtin_scenes():
+    assert list(BUILTIN) == EXPECTED
+    for name, s in BUILTIN.items():
+        check_scene(s, name)
+        assert s.name == name and s.description and "\n" not in s.description
+        assert (s.dt, s.horizon, s.trajectories) == (0.05, 50, 1000)
+    assert [BUILTIN[n].params["coupling"] for n in ("lorenz10", "lorenz10_medium", "lorenz10_high")] == [0.01, 1.0, 5.0]
+    assert BUILTIN["gene16_ba_multi"].graph.seeds == (1, 2, 3, 4, 5)
+    assert BUILTIN["gene64_ws"].graph.args == {"k": 32, "p": 0.5}
+
+
+def test_example_file_loads_and_generates():
+    s = load_scene(EXAMPLE)
+    assert s.name == "example_gene_ring" and s.system == "gene" and s.seed == 7
+    t = generate(replace(s, trajectories=2, horizon=3), workers=1)
+    assert t.x.shape == (2, 4, 8, 1)
+    assert all(d == 2 for d in t.graphs[0].degrees())  # a ring
+
+
+def write(tmp_path, text):
+    p = tmp_path / "scene.toml"
+    p.write_text(text)
+    return p
+
+
+GOOD_GRAPH = '[graph]\nbuilder = "watts_strogatz"\nnodes = 10\nk = 4\np = 0.5\nseeds = [1, 2]\n'
+
+
+def test_random_graph_scene(tmp_path):
+    s = read_scene(write(tmp_path, 'system = "kuramoto"\ndt = 1\n[params]\nK = 1\n' + GOOD_GRAPH))
+    assert s.graph.builder == "watts_strogatz" and s.graph.seeds == (1, 2) and s.graph.args == {"k": 4, "p": 0.5}
+    assert s.dt == 1.0 and isinstance(s.dt, float) and s.params == {"K": 1.0}
+
+
+@pytest.mark.parametrize("text, field", [
+    ('system = "kuramoto"\n' + GOOD_GRAPH + 'colour = 3\n', "graph.colour"),
+    ('system = "kuramoto"\nspeed = 3\n' + GOOD_GRAPH, "speed"),
+    ('system = "kuramoto"\ntrajectories = "many"\n' + GOOD_GRAPH, "trajectories"),
+    ('system = "kuramoto"\ntrajectories = true\n' + GOOD_GRAPH, "trajectories"),
+    ('system = "kuramoto"\ndt = -0.1\n' + GOOD_GRAPH, "dt"),
+    ('system = "kuramoto"\nhorizon = 0\n' + GOOD_GRAPH, "horizon"),
+    (GOOD_GRAPH, "system"),
+    ('system = "kuramoto"\n', "graph"),
+    ('system = "heat"\n' + GOOD_GRAPH, "system"),
+    ('system = "kuramoto"\n[params]\nsigma = 1\n' + GOOD_GRAPH, "params.sigma"),
+    ('system = "kuramoto"\ninitial = "hotspots"\n' + GOOD_GRAPH, "initial"),
+    ('system = "kuramoto"\nintegrator = "Euler"\n' + GOOD_GRAPH, "integrator"),
+    ('system = "kuramoto"\n[graph]\nbuilder = "watts_strogatz"\nnodes = 10\nk = 4\nseed = 1\n', "graph.p"),
+    ('system = "kuramoto"\n[graph]\nbuilder = "gnm"\nnodes = 10\nm = 4\n', "graph.seeds"),
+    ('system = "kuramoto"\n[graph]\nbuilder = "gnm"\nnodes = 10\nm = 4\nseed = 1\nedges = [[0, 1]]\n', "graph.edges"),
+    ('system = "kuramoto"\n[graph]\nbuilder = "star"\nnodes = 10\n', "graph.builder"),
+    ('system = "gene"\n[graph]\nbuilder = "edges"\nnodes = 3\n', "graph.edges"),
+    ('system = "gene"\n[graph]\nbuilder = "edges"\nnodes = 3\nedges = [[0, 3]]\n', "graph.edges"),
+    ('system = "gene"\n[graph]\nbuilder = "edges"\nnodes = 3\nedges = [[0, 1.5]]\n', "graph.edges"),
+    ('system = "gene"\n[graph\n', "TOML"),
+])
+def test_bad_scene_files_name_file_and_key(tmp_path, text, field):
+    path = write(tmp_path, text)
+    with pytest.raises(InputError) as e:
+        read_scene(path)
+    assert e.value.source == str(path) and e.value.field == field
+
+
+def test_graph_the_physics_cannot_run_on(tmp_path):
+    s = read_scene(write(tmp_path, 'system = "lorenz"\n[graph]\nbuilder = "edges"\nnodes = 3\nedges = [[0, 1]]\n'))
+    with pytest.raises(InputError, match="complete"):
+        generate(s, workers=1)
+
+
+def test_missing_scene_file():
+    with pytest.raises(InputError, match="does not exist"):
+        load_scene("/nonexistent/scene.toml")
