@@ -9,6 +9,8 @@ from .errors import InputError, NumericalError  # noqa: F401
 from .graph import Graph, block_diagonal  # noqa: F401
 
 _LAZY = {
+    "Model": "model",
+    "loss_and_grad": "model",
     "Trajectories": "data",
     "read_trajectories": "data",
     "write_trajectories": "data",

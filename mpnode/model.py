@@ -1,0 +1,168 @@
+"""The MP-NODE model object: weights, integration settings and data normalisation together.
+
+A `Model` is what a model file (../shared/spec/model-format.md) holds; `rollout` works in
+the data's own units (it z-scores inputs and undoes it on outputs), so a model file alone
+reproduces mpnode's simulation.
+"""
+import numpy as np
+
+from . import integrate, mlp
+from .errors import InputError, NumericalError
+from .graph import Graph, block_diagonal
+
+FORMAT = "mpnode.model"
+FORMAT_VERSION = 1
+
+
+class Model:
+    """A trained (or freshly initialised) MP-NODE.
+
+    theta : ndarray, shape (P,) -- flat parameters, float32 or float64 (mpnode.mlp layout)
+    spec : integrate.FieldSpec -- dimensions, dt, substeps, message switches
+    x_mean, x_std : ndarray, shape (dx,) -- the model works on (x - x_mean) / x_std
+    u_mean, u_std : ndarray, shape (du,) -- the same for controls
+    attrs : dict -- extra attributes saved with the model (history, provenance, seed)
+    """
+
+    def __init__(self, theta, spec, x_mean=None, x_std=None, u_mean=None, u_std=None, attrs=None):
+        theta = np.ascontiguousarray(theta)
+        if theta.dtype not in (np.float32, np.float64):
+            raise TypeError(f"parameters must be float32 or float64, not {theta.dtype}")
+        want = mlp.n_params(spec.state_dim, spec.control_dim, spec.message_dim, spec.hidden)
+        if theta.shape != (want,):
+            raise ValueError(f"theta has shape {theta.shape}, the dimensions need ({want},)")
+        self.theta = theta
+        self.spec = spec
+        dx, du = spec.state_dim, spec.control_dim
+        self.x_mean = np.zeros(dx) if x_mean is None else np.asarray(x_mean, dtype=np.float64)
+        self.x_std = np.ones(dx) if x_std is None else np.asarray(x_std, dtype=np.float64)
+        self.u_mean = np.zeros(du) if u_mean is None else np.asarray(u_mean, dtype=np.float64)
+        self.u_std = np.ones(du) if u_std is None else np.asarray(u_std, dtype=np.float64)
+        self.attrs = dict(attrs or {})
+
+    # ---- construction ----------------------------------------------------
+    @classmethod
+    def create(cls, state_dim, control_dim=0, message_dim=3, hidden=32, dt=0.05, substeps=1,
+               zero_messages=False, self_messages=False, seed=0, dtype=np.float32):
+        """A new model with Glorot-uniform weights and zero biases drawn from ``seed``."""
+        spec = integrate.FieldSpec(state_dim, control_dim, message_dim, hidden, float(dt), int(substeps),
+                                   bool(zero_messages), bool(self_messages))
+        theta = mlp.glorot_init(state_dim, control_dim, message_dim, hidden, seed=seed, dtype=dtype)
+        return cls(theta, spec, attrs={"seed": seed})
+
+    @classmethod
+    def load(cls, path):
+        """Read and validate a model file; raises InputError naming the file and field."""
+        from .model_file import read_model
+
+        return read_model(path)
+
+    def save(self, path, **attrs):
+        """Write the model file atomically; refuses non-finite weights (NumericalError)."""
+        from .model_file import write_model
+
+        write_model(path, self, extra_attrs=attrs)
+
+    # ---- views -----------------------------------------------------------
+    @property
+    def dtype(self):
+        return self.theta.dtype
+
+    @property
+    def params(self):
+        """Named views W1 b1 W2 b2 W3 b3 into theta."""
+        s = self.spec
+        return mlp.split(self.theta, mlp.param_shapes(s.state_dim, s.control_dim, s.message_dim, s.hidden))
+
+    def copy(self, dtype=None):
+        """An independent copy, optionally in another precision."""
+        theta = self.theta.astype(dtype or self.dtype, copy=True)
+        return Model(theta, self.spec, self.x_mean.copy(), self.x_std.copy(), self.u_mean.copy(),
+                     self.u_std.copy(), dict(self.attrs))
+
+    def with_spec(self, **changes):
+        """The same weights with other settings, e.g. ``with_spec(substeps=4)``."""
+        from dataclasses import replace
+
+        return Model(self.theta, replace(self.spec, **changes), self.x_mean, self.x_std, self.u_mean,
+                     self.u_std, dict(self.attrs))
+
+    # ---- normalisation ---------------------------------------------------
+    def normalize_x(self, x):
+        return ((x - self.x_mean) / self.x_std).astype(self.dtype)
+
+    def denormalize_x(self, xn):
+        return xn * self.x_std + self.x_mean
+
+    def normalize_u(self, u):
+        return None if u is None else ((u - self.u_mean) / self.u_std).astype(self.dtype)
+
+    # ---- simulation ------------------------------------------------------
+    def rollout(self, x0, graph, u=None, steps=None):
+        """Simulate B trajectories from their initial states (messages start at 0).
+
+        x0 : ndarray, shape (B, N, dx) or (N, dx)
+        graph : Graph shared by all B trajectories, or a list of B Graphs (each on N nodes)
+        u : ndarray, shape (B, T, N, du), or None when the model has no controls
+        steps : T (defaults to u's length)
+        returns x : ndarray, shape (B, T+1, N, dx) (or (T+1, N, dx) for a 2-D x0), in the
+        model's dtype and the data's units.
+        """
+        x0 = np.asarray(x0)
+        single = x0.ndim == 2
+        if single:
+            x0 = x0[None]
+            u = None if u is None else np.asarray(u)[None]
+        if x0.ndim != 3 or x0.shape[2] != self.spec.state_dim:
+            raise ValueError(f"x0 has shape {x0.shape}, expected (B, N, {self.spec.state_dim})")
+        if steps is None:
+            if u is None:
+                raise ValueError("give steps= (or controls u, whose length sets it)")
+            steps = u.shape[1]
+        b, n, dx = x0.shape
+        flat = batch_graph(graph, b)
+        un = None if u is None else to_time_major(self.normalize_u(np.asarray(u)))
+        xs = integrate.rollout(self.spec, self.theta, self.normalize_x(x0).reshape(b * n, dx), flat, un, steps)
+        x = self.denormalize_x(xs.reshape(steps + 1, b, n, dx).transpose(1, 0, 2, 3)).astype(self.dtype)
+        return x[0] if single else x
+
+    def check_finite(self):
+        """Raise NumericalError if any weight or normalisation constant is NaN/inf."""
+        for name, a in [("theta", self.theta), ("x_mean", self.x_mean), ("x_std", self.x_std),
+                        ("u_mean", self.u_mean), ("u_std", self.u_std)]:
+            if not np.all(np.isfinite(a)):
+                raise NumericalError(f"model {name} contains non-finite values; refusing to use or save it")
+
+
+def loss_and_grad(model, x, graph, u=None, loss="huber"):
+    """Loss of the model's rollouts from x[:, 0] against x[:, 1..T], and its exact gradient.
+
+    x : ndarray, shape (B, T+1, N, dx), in data units (normalised with the model's constants)
+    graph : Graph shared by all B, or a list of B Graphs; u : (B, T, N, du) or None
+    loss : "huber" (delta 1) or "mse" on normalised states, summed over state dimensions
+    and steps 1..T and averaged over the B*N nodes (the seed code's time_series_huber).
+    Returns (loss, gtheta) with gtheta shaped like model.theta.
+    """
+    x = np.asarray(x)
+    b, t1, n, dx = x.shape
+    xn = to_time_major(model.normalize_x(x))
+    un = None if u is None else to_time_major(model.normalize_u(np.asarray(u)))
+    value, gtheta, _ = integrate.loss_and_grad(model.spec, model.theta, xn, batch_graph(graph, b), un, loss)
+    return value, gtheta
+
+
+def to_time_major(a):
+    """(B, T, N, d) -> contiguous (T, B*N, d): the kernels' layout."""
+    b, t, n, d = a.shape
+    return np.ascontiguousarray(a.transpose(1, 0, 2, 3)).reshape(t, b * n, d)
+
+
+def batch_graph(graph, n_batch):
+    """One block-diagonal graph for a batch: B copies of ``graph`` or the B graphs given."""
+    if isinstance(graph, Graph):
+        return graph if n_batch == 1 else block_diagonal([graph] * n_batch)
+    graphs = list(graph)
+    if len(graphs) != n_batch:
+        raise InputError("graph", "graph", f"{len(graphs)} graphs for {n_batch} trajectories",
+                         "one Graph, or one per trajectory")
+    return block_diagonal(graphs)
