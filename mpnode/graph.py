@@ -18,11 +18,14 @@ class Graph:
     indptr : ndarray, shape (N+1,), int64
     indices : ndarray, shape (E,), int64 -- row i lists the nodes i hears
     self_loops : bool -- True when self-loops are intended (files must say so)
+    parts : tuple of Graph, or None -- for a block-diagonal batch, the graphs it is made
+        of (in order); lets the kernels treat B copies of one small graph densely.
     """
 
     indptr: np.ndarray
     indices: np.ndarray
     self_loops: bool = False
+    parts: tuple = None
 
     def __post_init__(self):
         object.__setattr__(self, "indptr", np.ascontiguousarray(self.indptr, dtype=np.int64))
@@ -109,7 +112,8 @@ def block_diagonal(graphs):
     eoff = np.concatenate([[0], np.cumsum([g.n_edges for g in graphs])])
     indptr = np.concatenate([[0]] + [g.indptr[1:] + eoff[i] for i, g in enumerate(graphs)])
     indices = np.concatenate([g.indices + offsets[i] for i, g in enumerate(graphs)]) if graphs else np.zeros(0)
-    return Graph(indptr, indices, self_loops=any(g.self_loops for g in graphs))
+    parts = tuple(p for g in graphs for p in (g.parts or (g,)))
+    return Graph(indptr, indices, self_loops=any(g.self_loops for g in graphs), parts=parts)
 
 
 def check_csr(indptr, indices, n_nodes, allow_self_loops, source, field):

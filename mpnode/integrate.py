@@ -10,7 +10,7 @@ Arrays here are time-major and flat over nodes: x (T+1, M, dx), u (T, M, du).
 `mpnode.model` turns (B, T+1, N, dx) batches into this layout.
 """
 import contextlib
-import os
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,23 +58,79 @@ def closed_pieces(graph):
     return np.concatenate([[0], cuts, [m]]).astype(np.int64)
 
 
-def plan_blocks(graph, n_threads, blocks_per_thread=2, tile=128):
-    """Block boundaries for the block drivers, or None when one graph is too big to split.
+DENSE_MAX_NODES = 128
 
-    Whole closed pieces are grouped greedily into about n_threads*blocks_per_thread blocks.
+
+class Plan:
+    """How the kernels cover a graph: blocks of whole graphs, each dense or CSR.
+
+    blocks : ndarray (n_blocks+1,) of node boundaries, or None for the stagewise drivers
+    dense_n, dense_off : ndarray (n_blocks,) -- block b is copies of one dense_n[b]-node
+        graph whose 0/1 adjacency (self-loop included for self_messages) starts at
+        dense_A[dense_off[b]] (row-major); dense_n[b] = 0 means CSR
+    dense_A, dense_AT : flat arrays of those matrices and their transposes
     """
-    m = graph.n_nodes
-    pieces = closed_pieces(graph)
-    largest = int(np.max(np.diff(pieces))) if m else 0
-    n_blocks = max(1, n_threads * blocks_per_thread)
-    if m >= 2 * tile * n_threads and largest > m / n_blocks:
-        return None
-    target = m / n_blocks
-    bounds = [0]
-    for end in pieces[1:]:
-        if end - bounds[-1] >= target or end == m:
-            bounds.append(int(end))
-    return np.asarray(bounds, dtype=np.int64)
+
+    def __init__(self, graph, n_threads, self_messages, dtype, blocks_per_thread=2, tile=128):
+        self.blocks = None
+        m = graph.n_nodes
+        parts = graph.parts or (graph,)
+        sizes = np.array([p.n_nodes for p in parts], dtype=np.int64)
+        if graph.parts is None or len(parts) == 1:
+            pieces = closed_pieces(graph)
+            parts, sizes = (None,) * (len(pieces) - 1), np.diff(pieces)
+        n_blocks = max(1, n_threads * blocks_per_thread)
+        if m >= 2 * tile * n_threads and sizes.max(initial=0) > m / n_blocks:
+            return  # one graph too big to split: stagewise
+        target = m / n_blocks
+        # Greedy: whole parts into blocks of about `target` nodes, closing a block early
+        # where the graph changes so that blocks of copies can go dense.
+        bounds, owners, start, size = [0], [], 0, 0
+        for k, n in enumerate(sizes):
+            size += n
+            last = k + 1 == len(sizes)
+            if last or size >= target or (parts[k + 1] is not parts[start] and size >= target / 4):
+                bounds.append(bounds[-1] + size)
+                owners.append(parts[start] if all(p is parts[start] for p in parts[start:k + 1]) else None)
+                start, size = k + 1, 0
+        self.blocks = np.asarray(bounds, dtype=np.int64)
+        self.dense_n = np.zeros(len(owners), dtype=np.int64)
+        self.dense_off = np.zeros(len(owners), dtype=np.int64)
+        mats, mats_t, offset, seen = [], [], 0, {}
+        for b, g in enumerate(owners):
+            if g is None or not _worth_dense(g):
+                continue
+            if id(g) not in seen:
+                a = np.zeros((g.n_nodes, g.n_nodes), dtype=dtype)
+                a[np.repeat(np.arange(g.n_nodes), g.degrees()), g.indices] = 1
+                if self_messages:
+                    a[np.diag_indices(g.n_nodes)] = 1
+                seen[id(g)] = offset
+                mats.append(a.ravel())
+                mats_t.append(np.ascontiguousarray(a.T).ravel())
+                offset += a.size
+            self.dense_n[b] = g.n_nodes
+            self.dense_off[b] = seen[id(g)]
+        self.dense_A = np.concatenate(mats) if mats else np.zeros(0, dtype=dtype)
+        self.dense_AT = np.concatenate(mats_t) if mats_t else np.zeros(0, dtype=dtype)
+
+
+def _worth_dense(g):
+    """Small graphs, or dense ones up to DENSE_MAX_NODES: one GEMM beats walking CSR rows."""
+    n = g.n_nodes
+    return n <= 16 or (n <= DENSE_MAX_NODES and g.n_edges * 8 >= n * n)
+
+
+_plans = weakref.WeakKeyDictionary()
+
+
+def plan_for(graph, self_messages, dtype):
+    """The Plan for ``graph`` (cached per graph object: batches reuse their graphs)."""
+    key = (_n_threads(), bool(self_messages), np.dtype(dtype).str)
+    per_graph = _plans.setdefault(graph, {})
+    if key not in per_graph:
+        per_graph[key] = Plan(graph, key[0], self_messages, dtype)
+    return per_graph[key]
 
 
 def inverse_degree(graph, self_messages, dtype):
@@ -165,12 +221,12 @@ def rollout(spec, theta, x0, graph, u=None, n_steps=1):
     out = np.empty((n_steps + 1, m, spec.state_dim), dtype=theta.dtype)
     args = (theta, spec.message_dim, spec.hidden, x0, u, graph.indptr, graph.indices, inv_deg)
     flags = (spec.substeps, h, spec.self_messages, spec.zero_messages, out)
-    blocks = plan_blocks(graph, _n_threads())
+    plan = plan_for(graph, spec.self_messages, theta.dtype)
     with single_threaded_blas():
-        if blocks is None:
+        if plan.blocks is None:
             kernels.rollout_stagewise(*args, *flags)
         else:
-            kernels.rollout_blocks(*args, blocks, *flags)
+            kernels.rollout_blocks(*args, plan.blocks, plan.dense_n, plan.dense_off, plan.dense_A, *flags)
     return out
 
 
@@ -196,14 +252,15 @@ def loss_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes_total=Non
     tgraph = transpose(graph)
     args = (theta, spec.message_dim, spec.hidden, x, u, graph.indptr, graph.indices, inv_deg,
             tgraph.indptr, tgraph.indices)
-    blocks = plan_blocks(graph, _n_threads())
-    n_parts = len(blocks) - 1 if blocks is not None else -(-m // kernels.TILE)
+    plan = plan_for(graph, spec.self_messages, theta.dtype)
+    n_parts = len(plan.blocks) - 1 if plan.blocks is not None else -(-m // kernels.TILE)
     gthetas = np.empty((n_parts, theta.size), dtype=theta.dtype)
     losses = np.zeros(n_parts, dtype=np.float64)
     tail = (spec.substeps, h, spec.self_messages, spec.zero_messages, kind, scale, states, gthetas, losses, gx0)
     with single_threaded_blas():
-        if blocks is None:
+        if plan.blocks is None:
             kernels.loss_grad_stagewise(*args, *tail)
         else:
-            kernels.loss_grad_blocks(*args, blocks, *tail)
+            kernels.loss_grad_blocks(*args, plan.blocks, plan.dense_n, plan.dense_off, plan.dense_A,
+                                     plan.dense_AT, *tail)
     return float(losses.sum()), gthetas.sum(axis=0, dtype=theta.dtype), gx0

@@ -169,11 +169,16 @@ def mlp_backward(theta, V, H1, H2, GK, gtheta):
 # The graph field on a tile: inputs [x, u, m'], MLP, RK combination.
 # ---------------------------------------------------------------------------
 @njit(**_JIT)
-def gather_inputs(zin, zoff, u, indptr, indices, inv_deg, t0, t1, dx, self_msg, zero_msg, V):
-    """V[r] = [x_i, u_i, m'_i] for nodes i = t0 + r; m'_i = inv_deg[i] * sum of row i's messages."""
+def gather_inputs(zin, zoff, u, indptr, indices, inv_deg, t0, t1, dx, self_msg, zero_msg, msum, V):
+    """V[r] = [x_i, u_i, m'_i] for nodes i = t0 + r; m'_i = inv_deg[i] * sum of row i's messages.
+
+    When ``msum`` has rows it already holds each node's message sum (dense path,
+    rows ``i - zoff``); otherwise the sum runs over the CSR row.
+    """
     du = u.shape[1]
     dm = zin.shape[1] - dx
     c = dx + du
+    dense = msum.shape[0] > 0
     for r in range(t1 - t0):
         i = t0 + r
         zi = i - zoff
@@ -181,32 +186,55 @@ def gather_inputs(zin, zoff, u, indptr, indices, inv_deg, t0, t1, dx, self_msg, 
             V[r, d] = zin[zi, d]
         for d in range(du):
             V[r, dx + d] = u[i, d]
-        for d in range(dm):
-            V[r, c + d] = 0
-        if zero_msg:
-            continue
-        for p in range(indptr[i], indptr[i + 1]):
-            j = indices[p] - zoff
-            for d in range(dm):
-                V[r, c + d] += zin[j, dx + d]
-        if self_msg:
-            for d in range(dm):
-                V[r, c + d] += zin[zi, dx + d]
         w = inv_deg[i]
-        for d in range(dm):
-            V[r, c + d] *= w
+        if zero_msg:
+            for d in range(dm):
+                V[r, c + d] = 0
+        elif dense:
+            for d in range(dm):
+                V[r, c + d] = msum[zi, d] * w
+        else:
+            p0 = indptr[i]
+            p1 = indptr[i + 1]
+            for d in range(dm):
+                acc = zin[zi, dx + d] if self_msg else zin.dtype.type(0)
+                for p in range(p0, p1):
+                    acc += zin[indices[p] - zoff, dx + d]
+                V[r, c + d] = acc * w
+
+
+@njit(**_JIT)
+def dense_sum(A, src, col0, out, ocol0):
+    """out[b*N + i, ocol0+d] = sum_j A[i, j] src[b*N + j, col0+d] for every graph b of the rows.
+
+    The rows of ``src`` are k copies of one N-node graph with 0/1 adjacency A (N, N);
+    the k graphs go through one GEMM (N, N) @ (N, k*dm).
+    """
+    N = A.shape[0]
+    k = src.shape[0] // N
+    dm = out.shape[1] - ocol0
+    Mt = np.empty((N, k * dm), src.dtype)
+    for b in range(k):
+        for j in range(N):
+            for d in range(dm):
+                Mt[j, b * dm + d] = src[b * N + j, col0 + d]
+    R = np.dot(A, Mt)
+    for b in range(k):
+        for i in range(N):
+            for d in range(dm):
+                out[b * N + i, ocol0 + d] = R[i, b * dm + d]
 
 
 @njit(**_JIT)
 def stage_tile(stage, h, theta, z, zin, zout, acc, u, indptr, indices, inv_deg,
-               t0, t1, zoff, dx, self_msg, zero_msg, V, H1, H2):
+               t0, t1, zoff, dx, self_msg, zero_msg, msum, V, H1, H2):
     """One RK4 stage for nodes t0..t1: k = F(zin), then fold k into the step.
 
     stage 0..2 write the next stage's input ``zout = z + C[s+1] h k`` and the running
     sum ``acc``; stage 3 finishes the step in place: ``z += h/6 (acc + k)``.
     V, H1, H2 (rows of this tile) receive the MLP's inputs and hidden activations.
     """
-    gather_inputs(zin, zoff, u, indptr, indices, inv_deg, t0, t1, dx, self_msg, zero_msg, V)
+    gather_inputs(zin, zoff, u, indptr, indices, inv_deg, t0, t1, dx, self_msg, zero_msg, msum, V)
     K = mlp_forward(theta, V, H1, H2, z.shape[1])
     dz = z.shape[1]
     if zero_msg:
@@ -251,16 +279,23 @@ def _stage_arrays(stage, z, za, zb):
 
 @njit(**_JIT)
 def rk4_substep_range(h, theta, z, za, zb, acc, u, indptr, indices, inv_deg, lo, hi, zoff,
-                      dx, self_msg, zero_msg, Vc, H1c, H2c, keep):
+                      dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c, keep):
     """One RK4 step for the closed node range lo..hi (sequential over its tiles).
 
+    A non-empty ``A`` (N, N) says the range is copies of one N-node graph with that 0/1
+    adjacency (self-loop included when nodes hear themselves): message sums then come
+    from one GEMM per stage into ``msum`` instead of the CSR rows.
     With ``keep`` the MLP inputs/activations of every stage go to Vc/H1c/H2c[stage]
     (rows ``i - zoff``) for the adjoint; otherwise to scratch tiles.
     """
     din = Vc.shape[2]
     Hd = H1c.shape[2]
+    dense = A.shape[0] > 0 and not zero_msg
+    sums = msum[:msum.shape[0] if dense else 0]  # empty: gather_inputs walks the CSR rows
     for stage in range(4):
         zin, zout = _stage_arrays(stage, z, za, zb)
+        if dense:
+            dense_sum(A, zin[lo - zoff:hi - zoff], dx, msum[lo - zoff:hi - zoff], 0)
         for t0 in range(lo, hi, TILE):
             t1 = min(hi, t0 + TILE)
             if keep:
@@ -272,7 +307,7 @@ def rk4_substep_range(h, theta, z, za, zb, acc, u, indptr, indices, inv_deg, lo,
                 H1 = np.empty((t1 - t0, Hd), z.dtype)
                 H2 = np.empty((t1 - t0, Hd), z.dtype)
             stage_tile(stage, h, theta, z, zin, zout, acc, u, indptr, indices, inv_deg,
-                       t0, t1, zoff, dx, self_msg, zero_msg, V, H1, H2)
+                       t0, t1, zoff, dx, self_msg, zero_msg, sums, V, H1, H2)
 
 
 # ---------------------------------------------------------------------------
@@ -376,12 +411,20 @@ def _scratch(n, dz, din, hidden, dtype_like):
     return z, np.empty_like(z), np.empty_like(z), np.empty_like(z), Vc, H1c, H2c
 
 
+@njit(**_JIT)
+def _dense_block(dense_A, n, off):
+    """The (n, n) adjacency of a dense block; (0, 0) when the block uses CSR."""
+    return dense_A[off:off + n * n].reshape(n, n)
+
+
 @njit(parallel=True, **_JIT)
-def rollout_blocks(theta, dm, hidden, x0, U, indptr, indices, inv_deg, block_ptr, substeps, h,
-                   self_msg, zero_msg, out):
+def rollout_blocks(theta, dm, hidden, x0, U, indptr, indices, inv_deg, block_ptr, dense_n, dense_off,
+                   dense_A, substeps, h, self_msg, zero_msg, out):
     """Forward rollout, each thread running whole blocks of graphs through all steps.
 
-    x0 (M, dx); out (T+1, M, dx) receives x at every output step.
+    x0 (M, dx); out (T+1, M, dx) receives x at every output step.  Block b is made of
+    copies of one dense_n[b]-node graph whose 0/1 adjacency is the row-major (N, N)
+    matrix at dense_A[dense_off[b]:] (dense_n[b] = 0: use the CSR rows).
     """
     dx = x0.shape[1]
     dz = dx + dm
@@ -391,12 +434,14 @@ def rollout_blocks(theta, dm, hidden, x0, U, indptr, indices, inv_deg, block_ptr
         lo = block_ptr[b]
         hi = block_ptr[b + 1]
         z, za, zb, acc, Vc, H1c, H2c = _scratch(hi - lo, dz, din, hidden, x0)
+        A = _dense_block(dense_A, dense_n[b], dense_off[b])
+        msum = np.empty((hi - lo, dm), x0.dtype)
         z[:, :dx] = x0[lo:hi]
         out[0, lo:hi] = x0[lo:hi]
         for t in range(T):
             for s in range(substeps):
                 rk4_substep_range(h, theta, z, za, zb, acc, U[t], indptr, indices, inv_deg, lo, hi, lo,
-                                  dx, self_msg, zero_msg, Vc, H1c, H2c, False)
+                                  dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c, False)
             out[t + 1, lo:hi] = z[:, :dx]
 
 
@@ -426,13 +471,13 @@ def rollout_stagewise(theta, dm, hidden, x0, U, indptr, indices, inv_deg, subste
                     H1 = np.empty((t1 - t0, hidden), x0.dtype)
                     H2 = np.empty((t1 - t0, hidden), x0.dtype)
                     stage_tile(stage, h, theta, z, zin, zout, acc, U[t], indptr, indices, inv_deg,
-                               t0, t1, 0, dx, self_msg, zero_msg, V, H1, H2)
+                               t0, t1, 0, dx, self_msg, zero_msg, za[:0, :dm], V, H1, H2)
         out[t + 1] = z[:, :dx]
 
 
 @njit(**_JIT)
 def substep_adjoint_range(h, theta, zstart, a, U_t, indptr, indices, inv_deg, tindptr, tindices,
-                          lo, hi, zoff, dx, self_msg, zero_msg, work, gtheta):
+                          lo, hi, zoff, dx, self_msg, zero_msg, A, AT, msum, work, gtheta):
     """Reverse one RK4 step for the closed range lo..hi: returns the cotangent of its start state.
 
     zstart: state at the step's start; a: cotangent of the state at its end.  The four
@@ -441,7 +486,7 @@ def substep_adjoint_range(h, theta, zstart, a, U_t, indptr, indices, inv_deg, ti
     z, za, zb, acc, Vc, H1c, H2c = work
     z[:] = zstart
     rk4_substep_range(h, theta, z, za, zb, acc, U_t, indptr, indices, inv_deg, lo, hi, zoff,
-                      dx, self_msg, zero_msg, Vc, H1c, H2c, True)
+                      dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c, True)
     du = U_t.shape[1]
     gz = a.copy()
     gnext = za  # cotangent of the next stage's input (stage buffers are free now)
@@ -454,8 +499,11 @@ def substep_adjoint_range(h, theta, zstart, a, U_t, indptr, indices, inv_deg, ti
             r1 = t1 - zoff
             stage_vjp_tile(stage, h, theta, a, gnext, gin, gmp, t0, t1, zoff, dx, du, inv_deg, zero_msg,
                            Vc[stage, r0:r1], H1c[stage, r0:r1], H2c[stage, r0:r1], gtheta)
-        for t0 in range(lo, hi, TILE):
-            transpose_tile(gin, gmp, tindptr, tindices, t0, min(hi, t0 + TILE), zoff, dx, self_msg, zero_msg)
+        if AT.shape[0] > 0 and not zero_msg:
+            dense_sum(AT, gmp[lo - zoff:hi - zoff], 0, gin[lo - zoff:hi - zoff], dx)
+        else:
+            for t0 in range(lo, hi, TILE):
+                transpose_tile(gin, gmp, tindptr, tindices, t0, min(hi, t0 + TILE), zoff, dx, self_msg, zero_msg)
         gz += gin
         gnext, gin = gin, gnext
     return gz
@@ -463,12 +511,14 @@ def substep_adjoint_range(h, theta, zstart, a, U_t, indptr, indices, inv_deg, ti
 
 @njit(parallel=True, **_JIT)
 def loss_grad_blocks(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindptr, tindices, block_ptr,
-                     substeps, h, self_msg, zero_msg, loss_kind, scale, Zs, gthetas, losses, gx0):
+                     dense_n, dense_off, dense_A, dense_AT, substeps, h, self_msg, zero_msg, loss_kind, scale,
+                     Zs, gthetas, losses, gx0):
     """Loss of the rollout from X[0] against X[1..T] and its exact discrete gradient.
 
     One thread per block: forward (states kept in Zs), then the reverse pass.  Writes the
     block's loss into losses[b], its parameter gradient into gthetas[b] and the gradient
-    with respect to the initial states into gx0 (M, dx).
+    with respect to the initial states into gx0 (M, dx).  Dense blocks as in rollout_blocks;
+    dense_AT holds the transposed adjacencies at the same offsets.
     """
     dx = X.shape[2]
     dz = dx + dm
@@ -480,13 +530,16 @@ def loss_grad_blocks(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindptr,
         hi = block_ptr[b + 1]
         work = _scratch(hi - lo, dz, din, hidden, X)
         z, za, zb, acc, Vc, H1c, H2c = work
+        A = _dense_block(dense_A, dense_n[b], dense_off[b])
+        AT = _dense_block(dense_AT, dense_n[b], dense_off[b])
+        msum = np.empty((hi - lo, dm), X.dtype)
         z[:, :dx] = X[0, lo:hi]
         Zs[0, lo:hi] = z
         loss = 0.0
         for t in range(T):
             for s in range(substeps):
                 rk4_substep_range(h, theta, z, za, zb, acc, U[t], indptr, indices, inv_deg, lo, hi, lo,
-                                  dx, self_msg, zero_msg, Vc, H1c, H2c, False)
+                                  dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c, False)
                 Zs[t * substeps + s + 1, lo:hi] = z
             loss += loss_tile(loss_kind, z, X[t + 1, lo:hi], scale, none)
         losses[b] = loss
@@ -498,7 +551,7 @@ def loss_grad_blocks(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindptr,
             for s in range(substeps - 1, -1, -1):
                 gz = substep_adjoint_range(h, theta, Zs[t * substeps + s, lo:hi], gz, U[t], indptr, indices,
                                            inv_deg, tindptr, tindices, lo, hi, lo, dx, self_msg, zero_msg,
-                                           work, gtheta)
+                                           A, AT, msum, work, gtheta)
         gx0[lo:hi] = gz[:, :dx]
 
 
@@ -529,8 +582,8 @@ def loss_grad_stagewise(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindp
                     t0 = k * TILE
                     t1 = min(M, t0 + TILE)
                     stage_tile(stage, h, theta, z, zin, zout, acc, U[t], indptr, indices, inv_deg,
-                               t0, t1, 0, dx, self_msg, zero_msg, Vc[stage, t0:t1], H1c[stage, t0:t1],
-                               H2c[stage, t0:t1])
+                               t0, t1, 0, dx, self_msg, zero_msg, za[:0, :dm], Vc[stage, t0:t1],
+                               H1c[stage, t0:t1], H2c[stage, t0:t1])
             Zs[t * substeps + s + 1] = z
         for k in prange(ntiles):
             t0 = k * TILE
@@ -554,8 +607,8 @@ def loss_grad_stagewise(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindp
                     t0 = k * TILE
                     t1 = min(M, t0 + TILE)
                     stage_tile(stage, h, theta, z, zin, zout, acc, U[t], indptr, indices, inv_deg,
-                               t0, t1, 0, dx, self_msg, zero_msg, Vc[stage, t0:t1], H1c[stage, t0:t1],
-                               H2c[stage, t0:t1])
+                               t0, t1, 0, dx, self_msg, zero_msg, za[:0, :dm], Vc[stage, t0:t1],
+                               H1c[stage, t0:t1], H2c[stage, t0:t1])
             gnew[:] = gz
             gnext = gbuf0
             gin = gbuf1
