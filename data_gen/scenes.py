@@ -5,13 +5,14 @@ The built-in scenes are the data sets of the MP-NODE paper (../shared/spec/syste
 anything else is a TOML file with this schema (example: scenes/example_gene_ring.toml)::
 
     description  = "one line"   # optional
-    system       = "gene"       # required: coupled_pendulum | lorenz | gene | kuramoto
+    system       = "gene"       # required: coupled_pendulum | lorenz | gene | kuramoto | quadrotor_load
     trajectories = 1000         # optional, B >= 1
     horizon      = 50           # optional, T >= 1 steps
     dt           = 0.05         # optional, > 0
     seed         = 0            # optional, initial states (trajectory b uses spawn_key (b,))
     system_seed  = 0            # optional, drawn parameters (lorenz H, kuramoto omega)
     initial      = "uniform"    # optional: uniform (the spec's ranges) | hotspots (gene, square N)
+                                # | equilibrium (quadrotor_load, which must say so)
     integrator   = "DOP853"     # optional: a scipy solve_ivp method
     rtol         = 1e-9         # optional
     atol         = 1e-9         # optional
@@ -83,6 +84,12 @@ def _kuramoto(kind):
                  "kuramoto", kuramoto_graph(kind, 10, (1,)))
 
 
+def _quad(n):
+    return Scene(f"quad{n}", f"{n} quadrotors carry a cable-suspended load towards a doorway (closed loop, "
+                 "5 s of the 10 s transport)", "quadrotor_load", GraphSpec("complete", n), initial="equilibrium",
+                 horizon=50, dt=0.1, integrator="LSODA", rtol=1e-9, atol=1e-9)
+
+
 BUILTIN = {
     s.name: s
     for s in [
@@ -93,6 +100,7 @@ BUILTIN = {
         *(_gene(n, kind) for n in (16, 64) for kind in ("er", "ba", "ws")),
         _gene(16, "ba", seeds=(1, 2, 3, 4, 5)),
         *(_kuramoto(kind) for kind in ("er", "ba", "ws")),
+        *(_quad(n) for n in (3, 6)),
     ]
 }
 
@@ -127,7 +135,11 @@ def check_scene(scene, source):
     if scene.integrator not in INTEGRATORS:
         raise InputError(source, "integrator", f"unknown method {scene.integrator!r}",
                          "one of " + ", ".join(INTEGRATORS))
-    get_sampler(scene.initial, system, scene.graph.n_nodes, source, "initial")
+    if system.generator is None:
+        get_sampler(scene.initial, system, scene.graph.n_nodes, source, "initial")
+    elif scene.initial not in system.samplers:  # closed-loop systems draw their own initial states
+        raise InputError(source, "initial", f"initial state {scene.initial!r} is not defined for {system.name}",
+                         "one of " + ", ".join(system.samplers))
 
 
 # ---- TOML -----------------------------------------------------------------------------

@@ -34,6 +34,8 @@ def generate(scene, *, workers=2, max_tries=10, progress=None):
     graphs = scene.graph.build()
     for g in graphs:
         system.check_graph(g, scene.name, "graph")
+    if system.generator is not None:  # closed loop (quadrotor_load): its own driver, controls and aux data
+        return system.generator(scene, workers=workers, max_tries=max_tries, progress=progress)
     n_nodes, B = scene.graph.n_nodes, scene.trajectories
     scalars = {**system.defaults, **scene.params}
     drawn = system.draw(scalars, n_nodes, np.random.default_rng(scene.system_seed))

@@ -15,6 +15,8 @@ import scipy.sparse
 from mpnode.errors import InputError
 from mpnode.graph import Graph
 
+from . import quadrotor
+
 #: the pendulum is refused where |cos(theta)| falls below this (the RHS divides by it)
 PENDULUM_COS_MIN = 1e-6
 
@@ -109,6 +111,8 @@ class System:
     n_nodes : the only node count the system is defined for, or None
     complete : the physics couples every pair (the graph must be complete)
     samplers : initial-state samplers that make sense for it (see initial.py)
+    generator : closed-loop systems only (quadrotor_load): generator(scene, workers=, max_tries=,
+        progress=) -> Trajectories, which then owns initial states, controls and aux data
     """
 
     name: str
@@ -122,6 +126,7 @@ class System:
     n_nodes: int = None
     complete: bool = False
     samplers: tuple = ("uniform",)
+    generator: Callable = None
 
     def check_graph(self, graph, source, field):
         """Raise InputError unless ``graph`` is one this system's physics is defined on."""
@@ -170,6 +175,10 @@ SYSTEMS = {
         System("kuramoto", 3, dict(K=1.0 / 3.0),
                low=(-1.0,) * 3, high=(1.0,) * 3,
                draw=lambda p, n, rng: {"omega": kuramoto_frequencies(rng)}, rhs=_kuramoto),
+        # rhs: f(t, y, F) on the state INCLUDING the load, thrusts F held (see quadrotor.py)
+        System(quadrotor.SYSTEM, quadrotor.STATE_DIM, dict(quadrotor.PARAMS), low=(), high=(),
+               draw=quadrotor.draw_params, rhs=quadrotor.make_rhs, complete=True,
+               samplers=("equilibrium",), generator=quadrotor.generate),
     ]
 }
 
