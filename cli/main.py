@@ -35,3 +35,5 @@ def main():
 # Each command module adds its commands to `main` on import.
 from . import inspect_cmd  # noqa: E402,F401
 from . import generate_cmd  # noqa: E402,F401
+from . import train_cmd  # noqa: E402,F401
+from . import eval_cmd  # noqa: E402,F401

@@ -1,0 +1,272 @@
+"""mpnode.train and mpnode.optim: the training loop, checkpoints, clipping, normalisation."""
+import json
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from mpnode import train
+from mpnode.data import Trajectories, write_trajectories
+from mpnode.graph import Graph
+from mpnode.model import Model
+from mpnode.optim import Adam, array_slices, clip_gradient
+
+
+def tiny_linear(B=24, T=10, dt=0.1, seed=0, offset=0.0):
+    """Two damped oscillators coupled by a spring on their first coordinate (exact solution).
+
+    x (B, T+1, 2, 2): node i has (position, velocity); dx/dt = A x_i + k (x_j - x_i) on the position.
+    """
+    A = np.array([[-0.1, 1.0], [-1.0, -0.1]])
+    k = 0.5
+    M = scipy.linalg.block_diag(A, A)
+    M[0, 0] -= k
+    M[0, 2] += k
+    M[2, 2] -= k
+    M[2, 0] += k
+    E = scipy.linalg.expm(M * dt)
+    rng = np.random.default_rng(seed)
+    x = np.empty((B, T + 1, 4))
+    x[:, 0] = rng.uniform(-1, 1, (B, 4))
+    for t in range(T):
+        x[:, t + 1] = x[:, t] @ E.T
+    return Trajectories(x=x.reshape(B, T + 1, 2, 2) + offset, graphs=[Graph.from_edges(2, [(0, 1)])], dt=dt,
+                        system="tiny_linear")
+
+
+def tiny_file(path, **kw):
+    write_trajectories(path, tiny_linear(**kw))
+    return str(path)
+
+
+def fresh(seed=0, hidden=16):
+    return Model.create(2, 0, 3, hidden, 0.1, seed=seed)
+
+
+FAST = dict(batch_size=32, lr=1e-2)
+
+
+def test_training_reduces_validation_loss_tenfold():
+    traj = tiny_linear()
+    r = train.fit(fresh(), [traj], train.TrainConfig(epochs=40, **FAST))
+    v0 = r.history[0]["val_loss"]
+    assert r.status == "completed" and r.epoch == 40
+    assert r.best_val_loss < v0 / 10, (v0, r.best_val_loss)
+    # the returned model is the best one: its validation loss is the recorded best
+    assert min(h["val_loss"] for h in r.history) == r.best_val_loss
+
+
+def test_validation_loss_is_the_training_loss_without_noise():
+    from mpnode import integrate
+
+    m = fresh()
+    traj = tiny_linear()
+    cfg = train.TrainConfig(noise=0.0)
+    tr, va, _ = train.prepare(m, [traj], cfg)
+    x, u, g = tr[0].batch(np.arange(tr[0].n))
+    for loss in ("huber", "mse"):
+        ref, _, _ = integrate.loss_and_grad(m.spec, m.theta, x, g, u, loss)
+        pred = integrate.rollout(m.spec, m.theta, x[0], g, u, x.shape[0] - 1)
+        assert train.rollout_loss(pred, x, loss) == pytest.approx(ref, rel=1e-5)
+
+
+def test_normalisation_is_fitted_on_the_training_split_only():
+    traj = tiny_linear(B=20, offset=0.0)
+    traj.x[:, :, :, 0] += np.arange(20)[:, None, None]  # every trajectory has its own level
+    m = fresh()
+    cfg = train.TrainConfig(val_split=0.3, seed=3)
+    _, _, split = train.prepare(m, [traj], cfg)
+    tr, va = split[0]
+    assert len(va) == 6 and len(tr) == 14 and not set(tr) & set(va)
+    want = traj.x[tr].reshape(-1, 2)
+    np.testing.assert_allclose(m.x_mean, want.mean(axis=0))
+    np.testing.assert_allclose(m.x_std, want.std(axis=0))
+    assert not np.allclose(m.x_mean, traj.x.reshape(-1, 2).mean(axis=0))
+    # the split depends on the seed only
+    assert np.array_equal(train.split_indices(20, 0.3, 3)[1], va)
+    assert not np.array_equal(train.split_indices(20, 0.3, 4)[1], va)
+
+
+def test_finetune_starts_from_exactly_the_given_weights(tmp_path):
+    src = fresh(seed=5)
+    src.x_mean, src.x_std = np.array([0.1, -0.2]), np.array([0.7, 0.9])
+    out = tmp_path / "ft.h5"
+    r = train.fit(src, [tiny_linear()], train.TrainConfig(epochs=0, norm="keep"), out)
+    saved = Model.load(out)
+    assert np.array_equal(saved.theta, src.theta)
+    assert np.array_equal(saved.x_mean, src.x_mean) and np.array_equal(saved.x_std, src.x_std)
+    # with epochs, epoch 0 is evaluated at the source weights and the source is not modified
+    before = src.theta.copy()
+    r = train.fit(src, [tiny_linear()], train.TrainConfig(epochs=2, norm="keep", **FAST))
+    assert np.array_equal(src.theta, before)
+    m0 = src.copy()
+    _, va, _ = train.prepare(m0, [tiny_linear()], train.TrainConfig(norm="keep"))
+    assert r.history[0]["val_loss"] == pytest.approx(train._Validator(va, "huber")(m0.spec, m0.theta), rel=1e-12)
+
+
+def test_saved_model_reloads_bit_for_bit_and_rolls_out_identically(tmp_path):
+    traj = tiny_linear()
+    out = tmp_path / "m.h5"
+    r = train.fit(fresh(), [traj], train.TrainConfig(epochs=3, **FAST), out)
+    saved = Model.load(out)
+    assert saved.theta.dtype == r.model.theta.dtype
+    assert np.array_equal(saved.theta, r.model.theta)
+    assert np.array_equal(saved.x_mean, r.model.x_mean) and np.array_equal(saved.x_std, r.model.x_std)
+    a = saved.rollout(traj.x[:5, 0], traj.graphs[0], steps=10)
+    b = r.model.rollout(traj.x[:5, 0], traj.graphs[0], steps=10)
+    assert np.array_equal(a, b)
+    assert saved.attrs["epoch"] == r.best_epoch
+
+
+def _strip(history):
+    return [{k: v for k, v in h.items() if k not in ("seconds", "elapsed")} for h in history]
+
+
+def test_resume_continues_the_same_run(tmp_path):
+    traj = tiny_linear()
+    cfg = dict(batch_size=8, lr=1e-2, patience=2)  # several batches per epoch, lr cuts happen
+    straight = train.fit(fresh(), [traj], train.TrainConfig(epochs=10, **cfg), tmp_path / "a.h5")
+    first = train.fit(fresh(), [traj], train.TrainConfig(epochs=5, **cfg), tmp_path / "b.h5")
+    assert first.epoch == 5
+    # resume takes its settings from the checkpoint; only epochs/time_limit come from the call
+    second = train.fit(None, [traj], train.TrainConfig(epochs=10, lr=123.0), tmp_path / "b.h5", resume=True)
+    assert second.epoch == 10 and second.lr == straight.lr
+    assert np.array_equal(second.model.theta, straight.model.theta)
+    assert second.best_epoch == straight.best_epoch
+    a, b = Model.load(tmp_path / "a.h5"), Model.load(tmp_path / "b.h5")
+    assert np.array_equal(a.theta, b.theta)
+    logs = [[json.loads(line) for line in open(str(tmp_path / f) + ".log.jsonl")] for f in ("a.h5", "b.h5")]
+    assert _strip(logs[0]) == _strip(logs[1])
+    assert [h["epoch"] for h in logs[1]] == list(range(11))
+
+
+def test_resume_refuses_other_data(tmp_path):
+    from mpnode.errors import InputError
+
+    train.fit(fresh(), [tiny_linear()], train.TrainConfig(epochs=1, **FAST), tmp_path / "m.h5")
+    with pytest.raises(InputError, match="other training data"):
+        train.fit(None, [tiny_linear(seed=1)], train.TrainConfig(epochs=2), tmp_path / "m.h5", resume=True)
+
+
+def test_huge_learning_rate_stops_with_a_message_and_a_finite_model(tmp_path):
+    out = tmp_path / "m.h5"
+    messages = []
+    r = train.fit(fresh(), [tiny_linear()], train.TrainConfig(epochs=50, batch_size=8, lr=1e3), out,
+                  notify=messages.append)
+    assert r.status == "diverged" and r.epoch < 50
+    assert "diverged" in r.message and "--lr" in r.message
+    assert any("learning rate halved" in m for m in messages)
+    saved = Model.load(out)  # the reader refuses NaN/inf
+    assert np.all(np.isfinite(saved.theta))
+    assert np.array_equal(saved.theta, r.model.theta)
+
+
+def test_non_finite_gradient_is_skipped_and_halves_the_learning_rate(monkeypatch):
+    from mpnode import integrate
+
+    real = integrate.loss_and_grad
+    calls = {"n": 0}
+
+    def flaky(*a, **k):
+        calls["n"] += 1
+        loss, g, gx = real(*a, **k)
+        if calls["n"] == 3:
+            g = g.copy()
+            g[0] = np.nan
+        return loss, g, gx
+
+    monkeypatch.setattr(integrate, "loss_and_grad", flaky)
+    msgs = []
+    r = train.fit(fresh(), [tiny_linear()], train.TrainConfig(epochs=2, batch_size=8, lr=1e-2), notify=msgs.append)
+    assert r.status == "completed"
+    assert sum(h["skipped_steps"] for h in r.history[1:]) == 1
+    assert r.history[-1]["lr"] == pytest.approx(5e-3)
+    assert any("gradient became non-finite" in m for m in msgs)
+    assert np.all(np.isfinite(r.model.theta))
+
+
+def test_clipping_per_array_and_global():
+    shapes = {"a": (3,), "b": (2, 2)}
+    sl = array_slices(shapes)
+    g = np.array([30.0, 40.0, 0.0, 0.1, 0.2, 0.2, 0.0])  # |a| = 50, |b| = 0.3
+    per = g.copy()
+    norm = clip_gradient(per, 5.0, sl, "per-array")
+    assert norm == pytest.approx(np.linalg.norm(g))
+    assert np.linalg.norm(per[sl[0]]) == pytest.approx(5.0)
+    np.testing.assert_allclose(per[sl[0]], g[sl[0]] / 10)
+    assert np.array_equal(per[sl[1]], g[sl[1]])  # below the threshold: untouched
+    glob = g.copy()
+    clip_gradient(glob, 5.0, sl, "global")
+    assert np.linalg.norm(glob) == pytest.approx(5.0)
+    np.testing.assert_allclose(glob, g * 5.0 / np.linalg.norm(g))
+    off = g.copy()
+    clip_gradient(off, 0, sl, "per-array")
+    assert np.array_equal(off, g)
+
+
+def test_clip_mode_changes_training(tmp_path):
+    traj = tiny_linear()
+    a = train.fit(fresh(), [traj], train.TrainConfig(epochs=2, clip=0.5, clip_mode="per-array", **FAST))
+    b = train.fit(fresh(), [traj], train.TrainConfig(epochs=2, clip=0.5, clip_mode="global", **FAST))
+    assert not np.array_equal(a.model.theta, b.model.theta)
+
+
+def test_adam_matches_the_textbook_update():
+    opt = Adam(3, lr=0.1)
+    g = np.array([1.0, -2.0, 0.5])
+    step = opt.update(g).copy()
+    np.testing.assert_allclose(step, 0.1 * np.sign(g), rtol=1e-6)  # first step: lr * g / |g|
+    step2 = opt.update(g).copy()
+    m = 0.9 * 0.1 * g + 0.1 * g
+    v = 0.999 * 0.001 * g * g + 0.001 * g * g
+    np.testing.assert_allclose(step2, 0.1 * (m / (1 - 0.81)) / (np.sqrt(v / (1 - 0.999**2)) + 1e-8))
+
+
+def test_training_log_is_valid_json_lines(tmp_path):
+    out = tmp_path / "m.h5"
+    train.fit(fresh(), [tiny_linear()], train.TrainConfig(epochs=3, **FAST), out)
+
+    def strict(c):
+        raise ValueError(f"non-standard JSON constant {c}")
+
+    lines = open(train.log_path(out)).read().splitlines()
+    records = [json.loads(line, parse_constant=strict) for line in lines]
+    assert [r["epoch"] for r in records] == [0, 1, 2, 3]
+    for r in records[1:]:
+        assert {"train_loss", "val_loss", "grad_norm", "lr", "seconds"} <= set(r)
+        assert math.isfinite(r["train_loss"]) and r["grad_norm"] > 0
+
+
+def test_epoch_batches_cover_every_trajectory_once_and_mix_files():
+    m = fresh()
+    a, b = tiny_linear(B=30), tiny_linear(B=12, seed=1)
+    tr, _, _ = train.prepare(m, [a, b], train.TrainConfig(val_split=0.25))
+    batches = train.epoch_batches(tr, 8, seed=0, epoch=1)
+    for p in (0, 1):
+        got = np.sort(np.concatenate([s for q, s in batches if q == p]))
+        assert np.array_equal(got, np.arange(tr[p].n))
+    assert all(len(s) <= 8 for _, s in batches)
+    assert [q for q, _ in batches] != sorted(q for q, _ in batches) or len(set(q for q, _ in batches)) == 1
+    again = train.epoch_batches(tr, 8, seed=0, epoch=1)
+    assert all(p == q and np.array_equal(s, t) for (p, s), (q, t) in zip(batches, again))
+
+
+def test_files_with_different_graphs_and_node_counts_train_together():
+    a = tiny_linear(B=16)
+    # a 3-node chain of the same per-node system (not physical, but the same dx/du/dt)
+    x3 = np.concatenate([a.x, a.x[:, :, :1]], axis=2)
+    b = Trajectories(x=x3, graphs=[Graph.from_edges(3, [(0, 1), (1, 2)])], dt=a.dt, system="tiny_linear")
+    r = train.fit(fresh(), [a, b], train.TrainConfig(epochs=2, **FAST))
+    assert r.status == "completed" and math.isfinite(r.best_val_loss)
+
+
+def test_incompatible_files_are_refused():
+    from mpnode.errors import InputError
+
+    a = tiny_linear()
+    b = tiny_linear(dt=0.2)
+    with pytest.raises(InputError, match="dt"):
+        train.fit(fresh(), [a, b], train.TrainConfig(epochs=1), sources=["a.h5", "b.h5"])
+    with pytest.raises(InputError, match="state dimensions"):
+        train.fit(Model.create(3, 0, 3, 8, 0.1), [a], train.TrainConfig(epochs=1))
