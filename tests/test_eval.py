@@ -1,0 +1,145 @@
+"""mpnode.evaluate and `mpnode eval`: error metrics, blow-ups, predictions, mismatches, reference timing."""
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mpnode import train
+from mpnode.cli.main import main
+from mpnode.data import Trajectories, read_trajectories, write_trajectories
+from mpnode.errors import InputError
+from mpnode.evaluate import blow_up_mask, evaluate, nmse_per_step, prediction_file, subset
+from mpnode.model import Model
+from test_train import fresh, tiny_linear
+
+
+def model_made_data(model, B=6, T=8, seed=0):
+    """Trajectories the model produces itself (float64): a perfect model for them."""
+    traj = tiny_linear(B=B, T=T, seed=seed)
+    x = model.rollout(traj.x[:, 0], traj.graphs[0], steps=T).astype(np.float64)
+    return Trajectories(x=x, graphs=traj.graphs, dt=model.spec.dt, system="model_made")
+
+
+def test_nmse_is_zero_for_the_model_own_trajectories():
+    m = fresh().copy(dtype=np.float64)
+    traj = model_made_data(m)
+    r = evaluate(m, traj)
+    assert r.nmse < 1e-20 and r.nmse_last < 1e-20 and r.first_bad_step is None and r.n_bad == 0
+    assert r.nmse_per_step.shape == (9,) and r.node_steps_per_second > 0 and r.rollout_seconds > 0
+    assert r.predictions.shape == traj.x.shape
+
+
+def test_nmse_definition_and_blow_up_detection():
+    rng = np.random.default_rng(0)
+    truth = rng.normal(size=(4, 6, 3, 2)) * np.array([1.0, 10.0])
+    pred = truth + 0.1 * np.array([1.0, 10.0])  # error 0.1 std in each dimension... relative to the std
+    var = truth.reshape(-1, 2).var(axis=0)
+    want = (0.01 * np.array([1.0, 100.0]) / var).mean()
+    err = nmse_per_step(pred, truth)
+    np.testing.assert_allclose(err, want)
+    # a prediction leaving ten times the data's box, or NaN, blows up from that step on
+    bad_pred = truth.copy()
+    lo, hi = truth[..., 0].min(), truth[..., 0].max()
+    bad_pred[2, 3, 1, 0] = hi + 6 * (hi - lo)
+    bad_pred[1, 5, 0, 1] = np.nan
+    mask = blow_up_mask(bad_pred, truth)
+    assert mask[2, 3:].all() and not mask[2, :3].any() and mask[1, 5] and not mask[0].any()
+    err = nmse_per_step(bad_pred, truth, mask)
+    assert np.all(np.isinf(err[3:])) and np.all(np.isfinite(err[:3]))
+    inside = truth.copy()
+    inside[2, 3, 1, 0] = hi + 4 * (hi - lo)  # outside the data but inside ten times its range
+    assert not blow_up_mask(inside, truth).any()
+
+
+def test_eval_error_of_a_converged_model_is_small():
+    # The linear test system is easy; 150 epochs at lr 1e-2 bring the validation loss below 1e-2
+    # (the data's own loss scale is ~5).  A normalised MSE of 0.02 means the rollouts explain 98% of
+    # the states' variance over the whole horizon; an untrained model scores ~1 (see the assert).
+    traj = tiny_linear(B=40)
+    r = train.fit(fresh(), [traj], train.TrainConfig(epochs=150, batch_size=32, lr=1e-2, patience=30))
+    on_train = evaluate(r.model, subset(traj, r.split[0][0]))
+    on_val = evaluate(r.model, subset(traj, r.split[0][1]))
+    untrained = evaluate(fresh().copy(), traj)
+    assert on_train.nmse < 0.02, on_train.nmse
+    assert on_val.nmse < 0.05, on_val.nmse
+    assert untrained.nmse > 0.3
+
+
+def test_mismatched_dimensions_and_dt_are_input_errors():
+    m = fresh()
+    x3 = np.zeros((2, 4, 2, 3))
+    wrong_dx = Trajectories(x=x3, graphs=tiny_linear().graphs, dt=0.1, system="x")
+    with pytest.raises(InputError, match="state dimensions"):
+        evaluate(m, wrong_dx, source="wrong.h5")
+    other_dt = tiny_linear(B=3, dt=0.2)
+    with pytest.raises(InputError, match="dt"):
+        evaluate(m, other_dt)
+    r = evaluate(m, other_dt, allow_dt_mismatch=True)
+    assert np.isfinite(r.nmse)
+
+
+def test_prediction_file_keeps_graphs_and_names_the_model(tmp_path):
+    m = fresh()
+    traj = tiny_linear(B=4)
+    r = evaluate(m, traj)
+    out = tmp_path / "pred.h5"
+    write_trajectories(out, prediction_file(traj, r.predictions, "m.h5"))
+    back = read_trajectories(out)
+    assert back.attrs["predicted_by"] == "m.h5" and back.system == traj.system and back.dt == traj.dt
+    assert back.graphs[0].equals(traj.graphs[0])
+    np.testing.assert_array_equal(back.x, r.predictions)
+    bad = r.predictions.copy()
+    bad[1, 2] = np.nan
+    from mpnode.errors import NumericalError
+
+    with pytest.raises(NumericalError, match="non-finite"):
+        prediction_file(traj, bad, "m.h5")
+
+
+def test_cli_eval_text_json_predictions_and_dx_mismatch(tmp_path):
+    m = fresh()
+    m.save(tmp_path / "m.h5")
+    write_trajectories(tmp_path / "d.h5", tiny_linear(B=5))
+    runner = CliRunner()
+    res = runner.invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d.h5"), "--predictions",
+                               str(tmp_path / "p.h5")])
+    assert res.exit_code == 0, res.output
+    assert "normalised MSE" in res.output and "node-steps/s" in res.output
+    assert "reference: the file names no system" in res.output  # tiny_linear is not a reference system
+    assert read_trajectories(tmp_path / "p.h5").x.shape == (5, 11, 2, 2)
+    res = runner.invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d.h5"), "--json"])
+    assert res.exit_code == 0
+    report = json.loads(res.output)
+    assert report["trajectories"] == 5 and len(report["nmse_per_step"]) == 11
+    # dx mismatch: exit 2, one clear line, no traceback
+    Model.create(3, 0, 3, 8, 0.1).save(tmp_path / "m3.h5")
+    res = runner.invoke(main, ["eval", str(tmp_path / "m3.h5"), str(tmp_path / "d.h5")])
+    assert res.exit_code == 2
+    assert "state dimensions" in res.output and "Traceback" not in res.output
+    # dt mismatch: exit 2 unless allowed
+    write_trajectories(tmp_path / "d2.h5", tiny_linear(B=3, dt=0.2))
+    res = runner.invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d2.h5")])
+    assert res.exit_code == 2 and "dt" in res.output
+    res = runner.invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d2.h5"), "--allow-dt-mismatch"])
+    assert res.exit_code == 0
+    res = runner.invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "missing.h5")])
+    assert res.exit_code == 2
+
+
+def test_cli_eval_times_the_reference_simulator(tmp_path):
+    from dataclasses import replace
+
+    from mpnode.data_gen import generate, load_scene
+
+    traj = generate(replace(load_scene("coupled_pendulum"), trajectories=4, horizon=10), workers=1)
+    write_trajectories(tmp_path / "p.h5", traj)
+    Model.create(2, 0, 3, 8, 0.05).save(tmp_path / "m.h5")
+    res = CliRunner().invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "p.h5"),
+                                    "--reference-sample", "3", "--json"])
+    assert res.exit_code == 0, res.output
+    ref = json.loads(res.output)["reference"]
+    assert ref["sample"] == 3 and ref["reference_seconds_per_trajectory"] > 0 and ref["speedup"] > 0
+    assert ref["reference_nmse_vs_file"] < 1e-12  # the same integrator rebuilds the file
+    res = CliRunner().invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "p.h5"), "--reference-sample", "2"])
+    assert "speed against error" in res.output
