@@ -14,7 +14,7 @@ torque ``tau = [L (F2 - F4), L (F3 - F1), k_m (F1 - F2 + F3 - F4)]``: rotor 1 on
 The integration runs one saved step at a time (the control changes every step) with a
 stiff-capable solve_ivp method (LSODA, rtol = atol = 1e-9 in the scenes: it switches to BDF
 when the stiff damped cable needs it; ~4600 RHS evaluations for T = 50 with n = 3, where Radau
-with a finite-difference Jacobian takes ~5x the evaluations and ~15x the time, same result to 2e-8),
+with a finite-difference Jacobian takes ~3.5x the evaluations and ~15x the time, same result to 2e-8),
 renormalises every quaternion at the step and continues from the saved state, so
 ``x[b, k+1]`` is exactly (to the tolerances) the integration of ``x[b, k]``, ``aux/load[b, k]``
 under ``u[b, k]``: the file's controls reproduce its trajectories.
