@@ -13,7 +13,7 @@ EXAMPLE = os.path.join(os.path.dirname(mpnode.data_gen.__file__), "scenes", "exa
 
 EXPECTED = ["coupled_pendulum", "lorenz3", "lorenz7", "lorenz10", "lorenz10_medium", "lorenz10_high",
             "gene16_er", "gene16_ba", "gene16_ws", "gene64_er", "gene64_ba", "gene64_ws", "gene16_ba_multi",
-            "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws"]
+            "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws", "quad3", "quad6"]
 
 
 def test_builtin_scenes():
@@ -21,7 +21,8 @@ def test_builtin_scenes():
     for name, s in BUILTIN.items():
         check_scene(s, name)
         assert s.name == name and s.description and "\n" not in s.description
-        assert (s.dt, s.horizon, s.trajectories) == (0.05, 50, 1000)
+        dt = 0.1 if s.system == "quadrotor_load" else 0.05  # quadrotor.md: dt = 0.1, T = 50
+        assert (s.dt, s.horizon, s.trajectories) == (dt, 50, 1000)
     assert [BUILTIN[n].params["coupling"] for n in ("lorenz10", "lorenz10_medium", "lorenz10_high")] == [0.01, 1.0, 5.0]
     assert BUILTIN["gene16_ba_multi"].graph.seeds == (1, 2, 3, 4, 5)
     assert BUILTIN["gene64_ws"].graph.args == {"k": 32, "p": 0.5}
