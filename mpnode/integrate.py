@@ -69,10 +69,15 @@ class Plan:
         graph whose 0/1 adjacency (self-loop included for self_messages) starts at
         dense_A[dense_off[b]] (row-major); dense_n[b] = 0 means CSR
     dense_A, dense_AT : flat arrays of those matrices and their transposes
+    inv_deg : ndarray (M,) -- 1 / (row length [+1 with self_messages]), 0 for empty rows
+    transposed : Graph -- the CSR transpose (computed on first use, for the adjoint)
     """
 
-    def __init__(self, graph, n_threads, self_messages, dtype, blocks_per_thread=2, tile=128):
+    def __init__(self, graph, n_threads, self_messages, dtype, driver="auto", blocks_per_thread=2, tile=128):
         self.blocks = None
+        self._csr = Graph(graph.indptr, graph.indices)  # not the graph: the cache holds it weakly
+        self._transposed = None
+        self.inv_deg = inverse_degree(graph, self_messages, dtype)
         m = graph.n_nodes
         parts = graph.parts or (graph,)
         sizes = np.array([p.n_nodes for p in parts], dtype=np.int64)
@@ -80,7 +85,8 @@ class Plan:
             pieces = closed_pieces(graph)
             parts, sizes = (None,) * (len(pieces) - 1), np.diff(pieces)
         n_blocks = max(1, n_threads * blocks_per_thread)
-        if m >= 2 * tile * n_threads and sizes.max(initial=0) > m / n_blocks:
+        too_big = m >= 2 * tile * n_threads and sizes.max(initial=0) > m / n_blocks
+        if driver == "stagewise" or (driver == "auto" and too_big):
             return  # one graph too big to split: stagewise
         target = m / n_blocks
         # Greedy: whole parts into blocks of about `target` nodes, closing a block early
@@ -115,6 +121,13 @@ class Plan:
         self.dense_AT = np.concatenate(mats_t) if mats_t else np.zeros(0, dtype=dtype)
 
 
+    @property
+    def transposed(self):
+        if self._transposed is None:
+            self._transposed = transpose(self._csr)
+        return self._transposed
+
+
 def _worth_dense(g):
     """Small graphs, or dense ones up to DENSE_MAX_NODES: one GEMM beats walking CSR rows."""
     n = g.n_nodes
@@ -124,12 +137,21 @@ def _worth_dense(g):
 _plans = weakref.WeakKeyDictionary()
 
 
-def plan_for(graph, self_messages, dtype):
-    """The Plan for ``graph`` (cached per graph object: batches reuse their graphs)."""
-    key = (_n_threads(), bool(self_messages), np.dtype(dtype).str)
+DRIVERS = ("auto", "blocks", "stagewise")
+
+
+def plan_for(graph, self_messages, dtype, driver="auto"):
+    """The Plan for ``graph`` (cached per graph object: batches reuse their graphs).
+
+    driver : "auto" (block drivers unless one graph is too big to split), or force
+    "blocks" / "stagewise" (the results agree to rounding; tests and benchmarks use this).
+    """
+    if driver not in DRIVERS:
+        raise ValueError(f"driver must be one of {DRIVERS}, not {driver!r}")
+    key = (_n_threads(), bool(self_messages), np.dtype(dtype).str, driver)
     per_graph = _plans.setdefault(graph, {})
     if key not in per_graph:
-        per_graph[key] = Plan(graph, key[0], self_messages, dtype)
+        per_graph[key] = Plan(graph, key[0], self_messages, dtype, driver)
     return per_graph[key]
 
 
@@ -188,7 +210,7 @@ def _n_threads():
 # ---------------------------------------------------------------------------
 # Entry points
 # ---------------------------------------------------------------------------
-def _prepare(spec, theta, graph, u, n_steps, n_nodes):
+def _prepare(spec, theta, graph, u, n_steps, n_nodes, driver):
     dtype = theta.dtype
     if dtype not in (np.float32, np.float64):
         raise TypeError(f"parameters must be float32 or float64, not {dtype}")
@@ -201,27 +223,26 @@ def _prepare(spec, theta, graph, u, n_steps, n_nodes):
         raise ValueError(f"u has shape {u.shape}, expected {(n_steps, n_nodes, spec.control_dim)}")
     if graph.n_nodes != n_nodes:
         raise ValueError(f"graph has {graph.n_nodes} nodes but the states have {n_nodes}")
-    inv_deg = inverse_degree(graph, spec.self_messages, dtype)
     h = dtype.type(spec.dt / spec.substeps)
-    return u, inv_deg, h
+    return u, plan_for(graph, spec.self_messages, dtype, driver), h
 
 
-def rollout(spec, theta, x0, graph, u=None, n_steps=1):
+def rollout(spec, theta, x0, graph, u=None, n_steps=1, driver="auto"):
     """Integrate from x0 (messages start at 0).
 
     x0 : ndarray, shape (M, dx); u : ndarray, shape (n_steps, M, du) or None;
     returns x : ndarray, shape (n_steps+1, M, dx), in theta's dtype.
+    driver : see plan_for.
     """
     from . import kernels
 
     theta = np.ascontiguousarray(theta)
     x0 = np.ascontiguousarray(x0, dtype=theta.dtype)
     m = x0.shape[0]
-    u, inv_deg, h = _prepare(spec, theta, graph, u, n_steps, m)
+    u, plan, h = _prepare(spec, theta, graph, u, n_steps, m, driver)
     out = np.empty((n_steps + 1, m, spec.state_dim), dtype=theta.dtype)
-    args = (theta, spec.message_dim, spec.hidden, x0, u, graph.indptr, graph.indices, inv_deg)
+    args = (theta, spec.message_dim, spec.hidden, x0, u, graph.indptr, graph.indices, plan.inv_deg)
     flags = (spec.substeps, h, spec.self_messages, spec.zero_messages, out)
-    plan = plan_for(graph, spec.self_messages, theta.dtype)
     with single_threaded_blas():
         if plan.blocks is None:
             kernels.rollout_stagewise(*args, *flags)
@@ -230,29 +251,28 @@ def rollout(spec, theta, x0, graph, u=None, n_steps=1):
     return out
 
 
-def loss_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes_total=None):
+def loss_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes_total=None, driver="auto"):
     """Loss of the rollout from x[0] against x[1..T] and its exact gradient.
 
     x : ndarray, shape (T+1, M, dx) -- the true states (x[0] is the initial state).
     The loss is Huber (delta 1) or squared error, summed over state dimensions and
     steps 1..T and divided by the number of nodes (``n_nodes_total``, default M).
-    Returns (loss, gtheta like theta, gx0 of shape (M, dx)).
+    Returns (loss, gtheta like theta, gx0 of shape (M, dx)).  driver : see plan_for.
     """
     from . import kernels
 
     theta = np.ascontiguousarray(theta)
     x = np.ascontiguousarray(x, dtype=theta.dtype)
     n_steps, m = x.shape[0] - 1, x.shape[1]
-    u, inv_deg, h = _prepare(spec, theta, graph, u, n_steps, m)
+    u, plan, h = _prepare(spec, theta, graph, u, n_steps, m, driver)
     kind = LOSSES[loss]
     scale = 1.0 / (n_nodes_total or m)
     dz = spec.state_dim + spec.message_dim
     states = np.empty((n_steps * spec.substeps + 1, m, dz), dtype=theta.dtype)
     gx0 = np.empty((m, spec.state_dim), dtype=theta.dtype)
-    tgraph = transpose(graph)
-    args = (theta, spec.message_dim, spec.hidden, x, u, graph.indptr, graph.indices, inv_deg,
+    tgraph = plan.transposed
+    args = (theta, spec.message_dim, spec.hidden, x, u, graph.indptr, graph.indices, plan.inv_deg,
             tgraph.indptr, tgraph.indices)
-    plan = plan_for(graph, spec.self_messages, theta.dtype)
     n_parts = len(plan.blocks) - 1 if plan.blocks is not None else -(-m // kernels.TILE)
     gthetas = np.empty((n_parts, theta.size), dtype=theta.dtype)
     losses = np.zeros(n_parts, dtype=np.float64)

@@ -279,17 +279,15 @@ def _stage_arrays(stage, z, za, zb):
 
 @njit(**_JIT)
 def rk4_substep_range(h, theta, z, za, zb, acc, u, indptr, indices, inv_deg, lo, hi, zoff,
-                      dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c, keep):
+                      dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c):
     """One RK4 step for the closed node range lo..hi (sequential over its tiles).
 
     A non-empty ``A`` (N, N) says the range is copies of one N-node graph with that 0/1
     adjacency (self-loop included when nodes hear themselves): message sums then come
-    from one GEMM per stage into ``msum`` instead of the CSR rows.
-    With ``keep`` the MLP inputs/activations of every stage go to Vc/H1c/H2c[stage]
-    (rows ``i - zoff``) for the adjoint; otherwise to scratch tiles.
+    from one GEMM per stage into ``msum`` instead of the CSR rows.  The MLP inputs and
+    activations of stage s land in Vc/H1c/H2c[s] (rows ``i - zoff``), where the adjoint
+    finds them.
     """
-    din = Vc.shape[2]
-    Hd = H1c.shape[2]
     dense = A.shape[0] > 0 and not zero_msg
     sums = msum[:msum.shape[0] if dense else 0]  # empty: gather_inputs walks the CSR rows
     for stage in range(4):
@@ -298,16 +296,10 @@ def rk4_substep_range(h, theta, z, za, zb, acc, u, indptr, indices, inv_deg, lo,
             dense_sum(A, zin[lo - zoff:hi - zoff], dx, msum[lo - zoff:hi - zoff], 0)
         for t0 in range(lo, hi, TILE):
             t1 = min(hi, t0 + TILE)
-            if keep:
-                V = Vc[stage, t0 - zoff:t1 - zoff]
-                H1 = H1c[stage, t0 - zoff:t1 - zoff]
-                H2 = H2c[stage, t0 - zoff:t1 - zoff]
-            else:
-                V = np.empty((t1 - t0, din), z.dtype)
-                H1 = np.empty((t1 - t0, Hd), z.dtype)
-                H2 = np.empty((t1 - t0, Hd), z.dtype)
-            stage_tile(stage, h, theta, z, zin, zout, acc, u, indptr, indices, inv_deg,
-                       t0, t1, zoff, dx, self_msg, zero_msg, sums, V, H1, H2)
+            r0 = t0 - zoff
+            r1 = t1 - zoff
+            stage_tile(stage, h, theta, z, zin, zout, acc, u, indptr, indices, inv_deg, t0, t1, zoff, dx,
+                       self_msg, zero_msg, sums, Vc[stage, r0:r1], H1c[stage, r0:r1], H2c[stage, r0:r1])
 
 
 # ---------------------------------------------------------------------------
@@ -441,7 +433,7 @@ def rollout_blocks(theta, dm, hidden, x0, U, indptr, indices, inv_deg, block_ptr
         for t in range(T):
             for s in range(substeps):
                 rk4_substep_range(h, theta, z, za, zb, acc, U[t], indptr, indices, inv_deg, lo, hi, lo,
-                                  dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c, False)
+                                  dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c)
             out[t + 1, lo:hi] = z[:, :dx]
 
 
@@ -486,7 +478,7 @@ def substep_adjoint_range(h, theta, zstart, a, U_t, indptr, indices, inv_deg, ti
     z, za, zb, acc, Vc, H1c, H2c = work
     z[:] = zstart
     rk4_substep_range(h, theta, z, za, zb, acc, U_t, indptr, indices, inv_deg, lo, hi, zoff,
-                      dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c, True)
+                      dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c)
     du = U_t.shape[1]
     gz = a.copy()
     gnext = za  # cotangent of the next stage's input (stage buffers are free now)
@@ -539,7 +531,7 @@ def loss_grad_blocks(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindptr,
         for t in range(T):
             for s in range(substeps):
                 rk4_substep_range(h, theta, z, za, zb, acc, U[t], indptr, indices, inv_deg, lo, hi, lo,
-                                  dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c, False)
+                                  dx, self_msg, zero_msg, A, msum, Vc, H1c, H2c)
                 Zs[t * substeps + s + 1, lo:hi] = z
             loss += loss_tile(loss_kind, z, X[t + 1, lo:hi], scale, none)
         losses[b] = loss
