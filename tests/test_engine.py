@@ -1,0 +1,525 @@
+"""The engine (mpnode.kernels via mpnode.integrate): layers, rollouts and exact gradients.
+
+Everything correctness-related runs in float64 against the pure-NumPy reference in
+engine_helpers.py or against central finite differences.  Both drivers are covered:
+``blocks`` (closed pieces of the graph, one thread per block) and ``stagewise`` (one
+big graph, a parallel loop over tiles per RK stage).  The ``driver`` fixture forces the
+stagewise driver on small graphs by making integrate.plan_for say "one big graph",
+and spies on the kernel entry points so a test fails if the intended driver did not run.
+The block driver itself has two ways to aggregate messages: CSR rows, and one dense GEMM
+for a block made of copies of one small graph; the test graphs contain both kinds of
+block (checked by test_test_graphs_cover_dense_and_csr_blocks).
+"""
+import copy
+import dataclasses
+
+import numba
+import numpy as np
+import pytest
+
+from engine_helpers import (aggregation_matrix, loss_ref, make_graph, mlp_ref, permute_graph, random_theta,
+                            rollout_ref, unpack)
+from mpnode import integrate, kernels
+from mpnode.graph import Graph, block_diagonal
+from mpnode.integrate import FieldSpec
+
+DRIVER_ENTRY_POINTS = ("rollout_blocks", "rollout_stagewise", "loss_grad_blocks", "loss_grad_stagewise")
+
+
+def _spy(fn, name, calls):
+    def wrapper(*args, **kwargs):
+        calls.append(name)
+        return fn(*args, **kwargs)
+
+    return wrapper
+
+
+@pytest.fixture(params=["blocks", "stagewise"])
+def driver(request, monkeypatch):
+    """Run the test with the given driver; afterwards check that only that driver ran."""
+    calls = []
+    for name in DRIVER_ENTRY_POINTS:
+        monkeypatch.setattr(kernels, name, _spy(getattr(kernels, name), name, calls))
+    if request.param == "stagewise":
+        real_plan_for = integrate.plan_for
+
+        def stagewise_plan(*args, **kwargs):
+            plan = copy.copy(real_plan_for(*args, **kwargs))  # a copy: the real one is cached
+            plan.blocks = None
+            return plan
+
+        monkeypatch.setattr(integrate, "plan_for", stagewise_plan)
+    yield request.param
+    assert calls, "no driver ran"
+    assert all(c.endswith(request.param) for c in calls), f"expected the {request.param} driver, ran {calls}"
+
+
+def spec_(**kw):
+    base = dict(state_dim=2, control_dim=2, message_dim=3, hidden=8, dt=0.1, substeps=3)
+    base.update(kw)
+    return FieldSpec(**base)
+
+
+def mixed_graph(seed=0, big=150):
+    """A batch: three copies of one 9-node graph, then one ``big``-node graph (nodes 27..).
+
+    Each graph has an isolated node and directed edges (engine_helpers.make_graph).  The
+    copies make a dense block, the big graph a CSR block that crosses TILE = 128 inside
+    the block; as one graph it spans two tiles, so the stagewise driver meets edges
+    across tiles.
+    """
+    rng = np.random.default_rng(seed)
+    g9 = make_graph(rng, 9)
+    return block_diagonal([g9, g9, g9, make_graph(rng, big)])
+
+
+def problem(spec, graph, T, seed=1, dtype=np.float64):
+    rng = np.random.default_rng(seed)
+    M = graph.n_nodes
+    theta = random_theta(rng, spec, dtype=dtype)
+    x0 = rng.standard_normal((M, spec.state_dim))
+    u = rng.standard_normal((T, M, spec.control_dim)) if spec.control_dim else None
+    return theta, x0, u
+
+
+def rel(a, b):
+    return np.linalg.norm(np.ravel(a) - np.ravel(b)) / max(np.linalg.norm(np.ravel(b)), 1e-300)
+
+
+# ---------------------------------------------------------------------------
+# 1. Layer VJPs against central finite differences
+# ---------------------------------------------------------------------------
+EPS_LAYER = 1e-6
+
+
+def fd_grad(f, arrays, eps=EPS_LAYER):
+    """Central-difference gradient of scalar f() with respect to every entry of each array."""
+    out = []
+    for a in arrays:
+        g = np.zeros_like(a)
+        flat, gflat = a.reshape(-1), g.reshape(-1)
+        for i in range(flat.size):
+            old = flat[i]
+            flat[i] = old + eps
+            fp = f()
+            flat[i] = old - eps
+            fm = f()
+            flat[i] = old
+            gflat[i] = (fp - fm) / (2 * eps)
+        out.append(g)
+    return out
+
+
+def test_dense_tanh_vjp_matches_finite_differences():
+    rng = np.random.default_rng(0)
+    n, a, c = 5, 4, 3
+    X, W, b = rng.standard_normal((n, a)), rng.standard_normal((a, c)) * 0.5, rng.standard_normal(c) * 0.5
+    GY = rng.standard_normal((n, c))
+
+    def f():
+        Y = np.empty((n, c))
+        kernels.dense_tanh_forward(X, W, b, Y)
+        return np.sum(GY * Y)
+
+    Y = np.empty((n, c))
+    kernels.dense_tanh_forward(X, W, b, Y)
+    np.testing.assert_allclose(Y, np.tanh(X @ W + b), rtol=1e-13, atol=1e-14)
+    # backward *adds* into gW, gb: start them non-zero
+    gW0, gb0 = rng.standard_normal((a, c)), rng.standard_normal(c)
+    gW, gb = gW0.copy(), gb0.copy()
+    GX = kernels.dense_tanh_backward(X, W, Y, GY.copy(), gW, gb)
+    fX, fW, fb = fd_grad(f, [X, W, b])
+    assert rel(GX, fX) < 1e-6
+    assert rel(gW - gW0, fW) < 1e-6
+    assert rel(gb - gb0, fb) < 1e-6
+
+
+def test_dense_vjp_matches_finite_differences():
+    rng = np.random.default_rng(1)
+    n, a, c = 5, 4, 3
+    X, W, b = rng.standard_normal((n, a)), rng.standard_normal((a, c)), rng.standard_normal(c)
+    GY = rng.standard_normal((n, c))
+
+    def f():
+        return np.sum(GY * kernels.dense_forward(X, W, b))
+
+    np.testing.assert_allclose(kernels.dense_forward(X, W, b), X @ W + b, rtol=1e-13, atol=1e-14)
+    gW0, gb0 = rng.standard_normal((a, c)), rng.standard_normal(c)
+    gW, gb = gW0.copy(), gb0.copy()
+    GX = kernels.dense_backward(X, W, GY.copy(), gW, gb)
+    fX, fW, fb = fd_grad(f, [X, W, b])
+    assert rel(GX, fX) < 1e-6
+    assert rel(gW - gW0, fW) < 1e-6
+    assert rel(gb - gb0, fb) < 1e-6
+
+
+def test_mlp_vjp_matches_finite_differences():
+    rng = np.random.default_rng(2)
+    n, din, H, dout = 6, 5, 7, 4
+    spec = FieldSpec(2, 1, 2, H, 0.1)  # din = 2+1+2 = 5, dout = 2+2 = 4
+    theta = random_theta(rng, spec, scale=1.5)
+    V = rng.standard_normal((n, din))
+    GK = rng.standard_normal((n, dout))
+
+    def f():
+        H1, H2 = np.empty((n, H)), np.empty((n, H))
+        return np.sum(GK * kernels.mlp_forward(theta, V, H1, H2, dout))
+
+    H1, H2 = np.empty((n, H)), np.empty((n, H))
+    K = kernels.mlp_forward(theta, V, H1, H2, dout)
+    np.testing.assert_allclose(K, mlp_ref(theta, V, dout), rtol=1e-12, atol=1e-13)
+    p = unpack(theta, din, H, dout)
+    np.testing.assert_allclose(H1, np.tanh(V @ p["W1"] + p["b1"]), rtol=1e-13, atol=1e-14)
+    gtheta0 = rng.standard_normal(theta.size)
+    gtheta = gtheta0.copy()
+    GV = kernels.mlp_backward(theta, V, H1, H2, GK.copy(), gtheta)
+    fV, ftheta = fd_grad(f, [V, theta])
+    assert rel(GV, fV) < 1e-6
+    g = gtheta - gtheta0
+    # every parameter block on its own (W1 b1 W2 b2 W3 b3), not only the whole vector
+    for name, blk in unpack(g, din, H, dout).items():
+        assert rel(blk, unpack(ftheta, din, H, dout)[name]) < 1e-6, name
+
+
+# ---------------------------------------------------------------------------
+# 2. Rollouts against the NumPy reference
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("self_messages", [False, True])
+@pytest.mark.parametrize("zero_messages", [False, True])
+def test_rollout_matches_reference(driver, self_messages, zero_messages):
+    spec = spec_(self_messages=self_messages, zero_messages=zero_messages)
+    graph = mixed_graph()
+    T = 3
+    theta, x0, u = problem(spec, graph, T)
+    got = integrate.rollout(spec, theta, x0, graph, u, T)
+    want = rollout_ref(spec, theta, x0, graph, u, T)
+    assert got.shape == (T + 1, graph.n_nodes, spec.state_dim) and got.dtype == np.float64
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    # the trajectory must actually move, or the comparison would prove little
+    assert np.abs(got[-1] - got[0]).max() > 1e-2
+
+
+@pytest.mark.parametrize("spec", [spec_(control_dim=0, message_dim=0, substeps=2),
+                                  spec_(state_dim=1, control_dim=0, message_dim=1, substeps=1, self_messages=True)],
+                         ids=["no-controls-no-messages", "dx1-dm1"])
+def test_rollout_matches_reference_small_dims(driver, spec):
+    for graph in (mixed_graph(3), Graph.from_edges(6, [])):  # the second has no edges at all
+        theta, x0, u = problem(spec, graph, 3)
+        np.testing.assert_allclose(integrate.rollout(spec, theta, x0, graph, u, 3),
+                                   rollout_ref(spec, theta, x0, graph, u, 3), rtol=1e-12, atol=1e-12)
+        x = targets_off_the_kink(rollout_ref(spec, theta, x0, graph, u, 3), np.random.default_rng(2))
+        loss, gtheta, gx0 = integrate.loss_and_grad(spec, theta, x, graph, u)
+        assert abs(loss - loss_ref(rollout_ref(spec, theta, x0, graph, u, 3), x, "huber", graph.n_nodes)) < 1e-12 * loss
+        assert np.all(np.isfinite(gtheta)) and np.all(np.isfinite(gx0))
+
+
+def test_reference_aggregation_semantics():
+    """The reference itself: mean over the row, 0 for an empty row, +self with self_messages."""
+    g = Graph.from_edges(4, [(0, 1), (0, 2), (2, 1)], directed=True)  # 0 hears 1,2; 2 hears 1; 1, 3 hear nobody
+    A = aggregation_matrix(g, False)
+    np.testing.assert_array_equal(A, [[0, .5, .5, 0], [0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0]])
+    A = aggregation_matrix(g, True)
+    np.testing.assert_allclose(A, [[1 / 3, 1 / 3, 1 / 3, 0], [0, 1, 0, 0], [0, .5, .5, 0], [0, 0, 0, 1]])
+
+
+def test_one_big_graph_runs_stagewise_and_matches_reference(monkeypatch):
+    """No forcing: a connected graph with M >= 2*TILE*threads goes to the stagewise driver."""
+    calls = []
+    for name in DRIVER_ENTRY_POINTS:
+        monkeypatch.setattr(kernels, name, _spy(getattr(kernels, name), name, calls))
+    n = 2 * kernels.TILE * numba.get_num_threads() + 40
+    graph = make_graph(np.random.default_rng(5), n)
+    spec = spec_(self_messages=True, substeps=2)
+    theta, x0, u = problem(spec, graph, 2)
+    got = integrate.rollout(spec, theta, x0, graph, u, 2)
+    assert calls == ["rollout_stagewise"]
+    np.testing.assert_allclose(got, rollout_ref(spec, theta, x0, graph, u, 2), rtol=1e-12, atol=1e-12)
+
+
+def test_test_graphs_cover_dense_and_csr_blocks():
+    """Coverage guard: the block driver sees both a dense block and a CSR block in mixed_graph.
+
+    If the planner changes, this fails rather than letting the other tests silently stop
+    covering one of the two aggregation paths.
+    """
+    for big in (150, 140):
+        plan = integrate.plan_for(mixed_graph(big=big), False, np.float64)
+        assert plan.blocks is not None
+        assert np.any(plan.dense_n > 0) and np.any(plan.dense_n == 0), (plan.blocks, plan.dense_n)
+
+
+@pytest.mark.parametrize("self_messages", [False, True])
+def test_graph_with_self_loops_matches_reference(driver, self_messages):
+    """A graph that lists a node in its own row (self_loops=True, allowed in trajectory files).
+
+    Spec: m'_k is the mean over row k, plus k itself when self_messages -- so with both, k's
+    own message counts twice.  The dense block path (a batch of copies of the graph) and the
+    CSR path (the graph alone) must both agree with that, forward and backward.
+    """
+    pairs = [(0, 1), (1, 0), (1, 2), (2, 1), (1, 1), (3, 0)]  # node 1 hears itself; 3 hears 0; 4 isolated
+    g = Graph.from_edges(5, pairs, directed=True, self_loops=True)
+    copies = 4
+    batch = block_diagonal([g] * copies)
+    spec = spec_(self_messages=self_messages)
+    T = 3
+    theta, x0, u = problem(spec, batch, T, seed=31)
+    want = rollout_ref(spec, theta, x0, batch, u, T)
+    np.testing.assert_allclose(integrate.rollout(spec, theta, x0, batch, u, T), want, rtol=1e-12, atol=1e-12)
+    x = targets_off_the_kink(want, np.random.default_rng(32))
+    loss, gtheta, gx0 = integrate.loss_and_grad(spec, theta, x, batch, u)
+    assert abs(loss - loss_ref(want, x, "huber", batch.n_nodes)) < 1e-12 * loss
+    gsum = np.zeros_like(gtheta)
+    for c in range(copies):
+        s = slice(5 * c, 5 * c + 5)
+        np.testing.assert_allclose(integrate.rollout(spec, theta, x0[s], g, u[:, s], T), want[:, s],
+                                   rtol=1e-12, atol=1e-12)
+        _, gi, gx0i = integrate.loss_and_grad(spec, theta, x[:, s], g, u[:, s], n_nodes_total=batch.n_nodes)
+        np.testing.assert_allclose(gx0i, gx0[s], rtol=1e-10, atol=1e-12 * np.abs(gx0).max())
+        gsum += gi
+    np.testing.assert_allclose(gsum, gtheta, rtol=1e-10, atol=1e-12 * np.abs(gtheta).max())
+
+
+# ---------------------------------------------------------------------------
+# 3. The whole-rollout gradient against central finite differences
+# ---------------------------------------------------------------------------
+def targets_off_the_kink(pred, rng):
+    """Targets pred[t] + e with |e| in [0.05, 0.7] or [1.3, 2.5]: both Huber branches are used
+    and every residual stays >= 0.3 away from the kink at |e| = 1, far beyond what an FD step
+    (<= 1e-4 in norm) can move it, so the loss is smooth along every FD segment."""
+    shape = pred[1:].shape
+    mag = np.where(rng.random(shape) < 0.5, rng.uniform(0.05, 0.7, shape), rng.uniform(1.3, 2.5, shape))
+    x = pred.copy()
+    x[1:] += mag * rng.choice([-1.0, 1.0], shape)
+    return x
+
+
+@pytest.mark.parametrize("kind,self_messages,zero_messages", [("huber", False, False), ("mse", False, False),
+                                                              ("huber", True, False), ("mse", False, True)],
+                         ids=["huber", "mse", "huber-self", "mse-zero"])
+def test_gradient_matches_finite_differences(driver, kind, self_messages, zero_messages):
+    spec = spec_(self_messages=self_messages, zero_messages=zero_messages)
+    rng = np.random.default_rng(7)
+    graph = mixed_graph(7, big=140)
+    T = 3
+    theta, x0, u = problem(spec, graph, T, seed=8)
+    x = targets_off_the_kink(rollout_ref(spec, theta, x0, graph, u, T), rng)
+    loss, gtheta, gx0 = integrate.loss_and_grad(spec, theta, x, graph, u, kind)
+    assert gtheta.shape == theta.shape and gx0.shape == x0.shape
+    # the loss value itself against the reference
+    assert abs(loss - loss_ref(rollout_ref(spec, theta, x0, graph, u, T), x, kind, graph.n_nodes)) < 1e-12 * loss
+
+    def L(th, x0_):
+        xx = x.copy()
+        xx[0] = x0_
+        return integrate.loss_and_grad(spec, th, xx, graph, u, kind)[0]
+
+    # Random directions of unit norm, step 1e-4 (about 1e-5 per coordinate): the truncation
+    # error (~step^2) and the rounding noise (~1e-16 * loss / step) are both <= ~1e-8 relative.
+    eps = 1e-4
+    for _ in range(2):
+        d = rng.standard_normal(theta.size)
+        d /= np.linalg.norm(d)
+        fd = (L(theta + eps * d, x0) - L(theta - eps * d, x0)) / (2 * eps)
+        assert abs(fd - gtheta @ d) < 1e-6 * abs(fd), (fd, gtheta @ d)
+        d = rng.standard_normal(x0.shape)
+        d /= np.linalg.norm(d)
+        fd = (L(theta, x0 + eps * d) - L(theta, x0 - eps * d)) / (2 * eps)
+        assert abs(fd - np.sum(gx0 * d)) < 1e-6 * abs(fd), (fd, np.sum(gx0 * d))
+    # A few single coordinates: the largest entries of theta's gradient (one per parameter
+    # block where it is not identically zero), and initial states of the awkward nodes:
+    # isolated nodes, nodes with a directed edge (in a dense and in the CSR block), nodes
+    # next to the tile boundaries (global: 127|128, inside the big graph's block: 27+127|27+128).
+    eps = 1e-5
+    din, dout = spec.state_dim + spec.control_dim + spec.message_dim, spec.state_dim + spec.message_dim
+    offsets = np.cumsum([0] + [b.size for b in unpack(gtheta, din, spec.hidden, dout).values()])
+    for lo, hi in zip(offsets[:-1], offsets[1:]):
+        if not np.any(gtheta[lo:hi]):
+            continue
+        i = lo + int(np.argmax(np.abs(gtheta[lo:hi])))
+        e = np.zeros_like(theta)
+        e[i] = eps
+        fd = (L(theta + e, x0) - L(theta - e, x0)) / (2 * eps)
+        assert abs(fd - gtheta[i]) < 1e-6 * abs(fd), (i, fd, gtheta[i])
+    for node, d in [(8, 0), (17, 1), (9 + 7, 1), (0, 0), (127, 1), (128, 0), (27 + 127, 0), (27 + 128, 1),
+                    (27 + 138, 0), (27 + 139, 1)]:
+        e = np.zeros_like(x0)
+        e[node, d] = eps
+        fd = (L(theta, x0 + e) - L(theta, x0 - e)) / (2 * eps)
+        assert abs(fd - gx0[node, d]) < 1e-6 * max(abs(fd), 1e-3 * np.abs(gx0).max()), (node, d, fd, gx0[node, d])
+
+
+# ---------------------------------------------------------------------------
+# 4. RK4 is fourth order
+# ---------------------------------------------------------------------------
+def test_rk4_global_error_is_fourth_order():
+    """Halving h (via substeps) must shrink the global error ~16x.
+
+    The exact solution is the kernel's own at 256 substeps (its error, ~(1/32)^4 of the
+    coarsest, is negligible).  A 3/8-rule slip or a wrong stage weight gives order <= 3
+    (ratio <= 8) or no convergence at all.
+    """
+    spec = spec_(control_dim=2, dt=0.5, substeps=1, self_messages=True)
+    graph = make_graph(np.random.default_rng(11), 9)
+    T = 4
+    theta, x0, u = problem(spec, graph, T, seed=12)
+    exact = integrate.rollout(dataclasses.replace(spec, substeps=256), theta, x0, graph, u, T)
+    np.testing.assert_allclose(exact, rollout_ref(dataclasses.replace(spec, substeps=256), theta, x0, graph, u, T),
+                               rtol=1e-11, atol=1e-11)
+    errs = [np.abs(integrate.rollout(dataclasses.replace(spec, substeps=s), theta, x0, graph, u, T) - exact).max()
+            for s in (2, 4, 8)]
+    assert errs[-1] > 1e-11, errs  # well above rounding, so the ratios measure truncation
+    for coarse, fine in zip(errs[:-1], errs[1:]):
+        assert 12 <= coarse / fine <= 20, errs
+
+
+# ---------------------------------------------------------------------------
+# 5. Relabelling nodes permutes the output and nothing else
+# ---------------------------------------------------------------------------
+def test_relabelling_nodes_permutes_rollout_and_gradient(driver):
+    spec = spec_(self_messages=True)
+    graph = mixed_graph(4)
+    M, T = graph.n_nodes, 3
+    theta, x0, u = problem(spec, graph, T, seed=13)
+    perm = np.random.default_rng(14).permutation(M)  # old node i becomes node perm[i]
+    pgraph = permute_graph(graph, perm)
+    px0 = np.empty_like(x0)
+    px0[perm] = x0
+    pu = np.empty_like(u)
+    pu[:, perm] = u
+    out = integrate.rollout(spec, theta, x0, graph, u, T)
+    pout = integrate.rollout(spec, theta, px0, pgraph, pu, T)
+    np.testing.assert_allclose(pout[:, perm], out, rtol=1e-12, atol=1e-12)
+
+    x = out + 0.3
+    px = np.empty_like(x)
+    px[:, perm] = x
+    loss, gtheta, gx0 = integrate.loss_and_grad(spec, theta, x, graph, u)
+    ploss, pgtheta, pgx0 = integrate.loss_and_grad(spec, theta, px, pgraph, pu)
+    assert abs(ploss - loss) <= 1e-12 * loss
+    np.testing.assert_allclose(pgtheta, gtheta, rtol=1e-12, atol=1e-12 * np.abs(gtheta).max())
+    np.testing.assert_allclose(pgx0[perm], gx0, rtol=1e-12, atol=1e-12 * np.abs(gx0).max())
+
+
+# ---------------------------------------------------------------------------
+# 6. A block-diagonal batch equals its graphs run one by one
+# ---------------------------------------------------------------------------
+def test_batch_equals_graphs_one_by_one():
+    rng = np.random.default_rng(15)
+    g9 = make_graph(rng, 9)
+    # different sizes, a repeated graph (B copies of one graph), and a block of > TILE nodes
+    graphs = [g9, make_graph(rng, 5), g9, make_graph(rng, 20)] + [g9] * 5 + [make_graph(rng, 130)]
+    batch = block_diagonal(graphs)
+    plan = integrate.plan_for(batch, True, np.float64)
+    assert len(plan.blocks) > 2  # really several blocks
+    spec = spec_(self_messages=True)
+    T = 3
+    theta, x0, u = problem(spec, batch, T, seed=16)
+    out = integrate.rollout(spec, theta, x0, batch, u, T)
+    x = targets_off_the_kink(out, rng)
+    loss, gtheta, gx0 = integrate.loss_and_grad(spec, theta, x, batch, u)
+    M = batch.n_nodes
+    lo, loss_sum, gsum = 0, 0.0, np.zeros_like(gtheta)
+    for g in graphs:
+        hi = lo + g.n_nodes
+        np.testing.assert_allclose(integrate.rollout(spec, theta, x0[lo:hi], g, u[:, lo:hi], T), out[:, lo:hi],
+                                   rtol=1e-12, atol=1e-12)
+        li, gi, gx0i = integrate.loss_and_grad(spec, theta, x[:, lo:hi], g, u[:, lo:hi], n_nodes_total=M)
+        np.testing.assert_allclose(gx0i, gx0[lo:hi], rtol=1e-12, atol=1e-12 * np.abs(gx0).max())
+        loss_sum += li
+        gsum += gi
+        lo = hi
+    assert abs(loss_sum - loss) <= 1e-12 * loss
+    np.testing.assert_allclose(gsum, gtheta, rtol=1e-11, atol=1e-12 * np.abs(gtheta).max())
+
+
+# ---------------------------------------------------------------------------
+# 7. float32 agrees with float64 to float32 precision
+# ---------------------------------------------------------------------------
+def test_float32_agrees_with_float64_over_50_steps(driver):
+    """Bound: float32 unit roundoff u = 6e-8.  A 50-step rollout makes ~50 * 4 stages of
+    O(10) roundings per value (dot products of length H = 16, the few-ulp rational tanh,
+    the RK combination); as a random walk that is ~sqrt(2000) * u ~ 3e-6 relative, and the
+    field's mild Lipschitz growth over t = 2.5 adds at most a few times that.  1e-5 relative
+    to the trajectory's scale leaves a margin; a float32 path that is wrong (a bad tanh
+    coefficient, a dropped term, float16-level rounding) is off by 1e-3 or more.
+    """
+    spec = spec_(hidden=16, dt=0.05, substeps=1)
+    graph = mixed_graph(17)
+    T = 50
+    theta, x0, u = problem(spec, graph, T, seed=18)
+    x64 = integrate.rollout(spec, theta, x0, graph, u, T)
+    x32 = integrate.rollout(spec, theta.astype(np.float32), x0.astype(np.float32), graph,
+                            u.astype(np.float32), T)
+    assert x32.dtype == np.float32
+    scale = np.abs(x64).max()
+    assert np.abs(x64[-1] - x64[0]).max() > 0.1 * scale  # it moves
+    assert np.abs(x32 - x64).max() < 1e-5 * scale
+    # the gradient too (reverse pass in float32): looser, the adjoint sums many terms
+    x = targets_off_the_kink(x64, np.random.default_rng(19))
+    l64, g64, gx64 = integrate.loss_and_grad(spec, theta, x, graph, u)
+    l32, g32, gx32 = integrate.loss_and_grad(spec, theta.astype(np.float32), x, graph, u)
+    assert g32.dtype == np.float32 and gx32.dtype == np.float32
+    assert abs(l32 - l64) < 1e-5 * l64
+    assert rel(g32, g64) < 1e-4 and rel(gx32, gx64) < 1e-4
+
+
+# ---------------------------------------------------------------------------
+# 8. zero_messages makes nodes independent
+# ---------------------------------------------------------------------------
+def test_zero_messages_decouples_nodes(driver):
+    graph = mixed_graph(20)
+    T = 5
+    spec = spec_(zero_messages=True)
+    theta, x0, u = problem(spec, graph, T, seed=21)
+    node = 3  # has neighbours in the 9-node graph
+    x0b = x0.copy()
+    x0b[node] += 0.5
+    others = np.arange(graph.n_nodes) != node
+    a = integrate.rollout(spec, theta, x0, graph, u, T)
+    b = integrate.rollout(spec, theta, x0b, graph, u, T)
+    np.testing.assert_array_equal(a[:, others], b[:, others])
+    assert np.abs(a[1:, node] - b[1:, node]).min() > 0
+    # control: with messages on, the same change does reach the neighbours
+    on = dataclasses.replace(spec, zero_messages=False)
+    a = integrate.rollout(on, theta, x0, graph, u, T)
+    b = integrate.rollout(on, theta, x0b, graph, u, T)
+    nbrs = graph.indices[graph.indptr[node]:graph.indptr[node + 1]]
+    assert np.all(np.abs(a[-1, nbrs] - b[-1, nbrs]).max(axis=1) > 1e-8)
+    # ... but still never the isolated node, nor the other graph of the batch
+    np.testing.assert_array_equal(a[:, 8], b[:, 8])
+    np.testing.assert_array_equal(a[:, 9:], b[:, 9:])
+
+
+def test_zero_messages_gives_exactly_zero_message_gradients(driver):
+    graph = mixed_graph(22)
+    T = 3
+    spec = spec_(zero_messages=True)
+    theta, x0, u = problem(spec, graph, T, seed=23)
+    x = targets_off_the_kink(rollout_ref(spec, theta, x0, graph, u, T), np.random.default_rng(24))
+    _, gtheta, _ = integrate.loss_and_grad(spec, theta, x, graph, u)
+    dx, du, dm, H = spec.state_dim, spec.control_dim, spec.message_dim, spec.hidden
+    g = unpack(gtheta, dx + du + dm, H, dx + dm)
+    assert np.all(g["W3"][:, dx:] == 0) and np.all(g["b3"][dx:] == 0)
+    assert np.all(g["W1"][dx + du:] == 0)  # m' is clamped to 0: its input rows get nothing
+    assert np.all(g["W3"][:, :dx] != 0) and np.all(g["b3"][:dx] != 0)
+
+
+# ---------------------------------------------------------------------------
+# 10. Determinism
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_gradient_is_bit_identical_across_calls(driver, dtype):
+    rng = np.random.default_rng(25)
+    graph = block_diagonal([make_graph(rng, 9), make_graph(rng, 150), make_graph(rng, 40), make_graph(rng, 9)])
+    spec = spec_(self_messages=True)
+    T = 4
+    theta, x0, u = problem(spec, graph, T, seed=26, dtype=dtype)
+    x = targets_off_the_kink(rollout_ref(spec, theta, x0, graph, u, T), rng)
+    first = integrate.loss_and_grad(spec, theta, x, graph, u)
+    for _ in range(3):
+        again = integrate.loss_and_grad(spec, theta, x, graph, u)
+        assert again[0] == first[0]
+        np.testing.assert_array_equal(again[1], first[1])
+        np.testing.assert_array_equal(again[2], first[2])
+    r1 = integrate.rollout(spec, theta, x0, graph, u, T)
+    np.testing.assert_array_equal(integrate.rollout(spec, theta, x0, graph, u, T), r1)

@@ -1,0 +1,305 @@
+"""Model: create/save/load round trips, rollouts in data units, model-file validation, lazy imports."""
+import os
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from engine_helpers import make_graph, rollout_ref
+from mpnode import InputError, NumericalError, integrate
+from mpnode.graph import block_diagonal
+from mpnode.model import Model, loss_and_grad, to_time_major
+
+DX, DU, DM, H = 2, 2, 3, 8
+
+
+def make_model(dtype=np.float64, seed=3):
+    m = Model.create(DX, control_dim=DU, message_dim=DM, hidden=H, dt=0.05, substeps=2, self_messages=True,
+                     seed=seed, dtype=dtype)
+    m.x_mean = np.array([0.5, -1.25])
+    m.x_std = np.array([2.0, 0.3])
+    m.u_mean = np.array([-0.1, 3.0])
+    m.u_std = np.array([0.7, 1.5])
+    # Glorot init has zero biases: give them values so a bias lost in the round trip shows
+    rng = np.random.default_rng(seed)
+    for name in ("b1", "b2", "b3"):
+        m.params[name][:] = rng.uniform(-0.5, 0.5, m.params[name].shape)
+    return m
+
+
+def data(B=3, N=9, T=4, seed=0):
+    rng = np.random.default_rng(seed)
+    x0 = rng.standard_normal((B, N, DX)) * [2.0, 0.3] + [0.5, -1.25]
+    u = rng.standard_normal((B, T, N, DU)) * [0.7, 1.5] + [-0.1, 3.0]
+    return x0, u
+
+
+@pytest.fixture
+def graph():
+    return make_graph(np.random.default_rng(1), 9)
+
+
+# ---------------------------------------------------------------------------
+# create -> save -> load
+# ---------------------------------------------------------------------------
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_save_load_round_trip_is_bit_for_bit(tmp_path, graph, dtype):
+    m = make_model(dtype)
+    m.attrs["note"] = "hello"
+    path = tmp_path / "model.h5"
+    m.save(path, epochs=7, data_file="traj.h5", best_loss=0.125)
+    back = Model.load(path)
+    assert back.dtype == dtype and back.theta.dtype == dtype
+    np.testing.assert_array_equal(back.theta, m.theta)
+    assert back.spec == m.spec
+    for name in ("x_mean", "x_std", "u_mean", "u_std"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(m, name))
+    assert back.attrs == {"seed": 3, "note": "hello", "epochs": 7, "data_file": "traj.h5", "best_loss": 0.125}
+    x0, u = data()
+    np.testing.assert_array_equal(back.rollout(x0, graph, u), m.rollout(x0, graph, u))
+
+
+def test_saved_file_follows_the_model_format(tmp_path):
+    """Read back with plain h5py, the way a tool without mpnode would."""
+    m = make_model()
+    path = tmp_path / "model.h5"
+    m.save(path)
+    with h5py.File(path, "r") as f:
+        a = dict(f.attrs)
+        assert a["format"] == "mpnode.model" and a["format_version"] == 1
+        assert (a["state_dim"], a["control_dim"], a["message_dim"], a["hidden"]) == (DX, DU, DM, H)
+        assert a["activation"] == "tanh" and a["integrator"] == "rk4"
+        assert a["dt"] == 0.05 and a["substeps"] == 2
+        assert a["zero_messages"] == 0 and a["self_messages"] == 1
+        shapes = {"W1": (DX + DU + DM, H), "b1": (H,), "W2": (H, H), "b2": (H,), "W3": (H, DX + DM), "b3": (DX + DM,)}
+        for name, shape in shapes.items():
+            assert f[f"params/{name}"].shape == shape
+            np.testing.assert_array_equal(f[f"params/{name}"][()], m.params[name])
+        np.testing.assert_array_equal(f["norm/x_std"][()], m.x_std)
+        np.testing.assert_array_equal(f["norm/u_mean"][()], m.u_mean)
+
+
+def test_model_without_controls_has_no_u_norm(tmp_path, graph):
+    m = Model.create(DX, control_dim=0, message_dim=DM, hidden=H, dtype=np.float64)
+    path = tmp_path / "m.h5"
+    m.save(path)
+    with h5py.File(path, "r") as f:
+        assert "u_mean" not in f["norm"] and "u_std" not in f["norm"]
+    back = Model.load(path)
+    x0, _ = data()
+    np.testing.assert_array_equal(back.rollout(x0, graph, steps=3), m.rollout(x0, graph, steps=3))
+
+
+# ---------------------------------------------------------------------------
+# Rollout in data units
+# ---------------------------------------------------------------------------
+def test_rollout_in_data_units_is_normalise_integrate_denormalise(graph):
+    m = make_model()
+    x0, u = data()
+    B, T, N = u.shape[0], u.shape[1], x0.shape[1]
+    got = m.rollout(x0, graph, u)
+    assert got.shape == (B, T + 1, N, DX) and got.dtype == np.float64
+
+    flat = block_diagonal([graph] * B)
+    xn0 = ((x0 - m.x_mean) / m.x_std).reshape(B * N, DX)
+    un = np.ascontiguousarray(((u - m.u_mean) / m.u_std).transpose(1, 0, 2, 3)).reshape(T, B * N, DU)
+    xs = integrate.rollout(m.spec, m.theta, xn0, flat, un, T)
+    want = xs.reshape(T + 1, B, N, DX).transpose(1, 0, 2, 3) * m.x_std + m.x_mean
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
+    # and against the independent NumPy reference, graph by graph
+    for b in range(B):
+        ref = rollout_ref(m.spec, m.theta, xn0[b * N:(b + 1) * N], graph, un[:, b * N:(b + 1) * N], T)
+        np.testing.assert_allclose(got[b], ref * m.x_std + m.x_mean, rtol=1e-12, atol=1e-12)
+    # the initial state comes back exactly as given (up to the normalise/denormalise rounding)
+    np.testing.assert_allclose(got[:, 0], x0, rtol=1e-14, atol=1e-14)
+    # a single trajectory (2-D x0) is the same as a batch of one
+    np.testing.assert_array_equal(m.rollout(x0[1], graph, u[1]), m.rollout(x0[1:2], graph, u[1:2])[0])
+
+
+def test_rollout_with_a_list_of_graphs_equals_one_by_one():
+    rng = np.random.default_rng(4)
+    graphs = [make_graph(rng, 9) for _ in range(3)]
+    m = make_model()
+    x0, u = data()
+    got = m.rollout(x0, graphs, u)
+    for b, g in enumerate(graphs):
+        np.testing.assert_allclose(got[b], m.rollout(x0[b], g, u[b]), rtol=1e-12, atol=1e-12)
+
+
+def test_loss_and_grad_in_data_units_matches_integrate(graph):
+    m = make_model()
+    x0, u = data()
+    x = m.rollout(x0, graph, u)
+    x[:, 1:] += np.random.default_rng(5).uniform(-0.2, 0.2, x[:, 1:].shape)
+    value, g = loss_and_grad(m, x, graph, u)
+    B = x.shape[0]
+    v2, g2, _ = integrate.loss_and_grad(m.spec, m.theta, to_time_major((x - m.x_mean) / m.x_std),
+                                        block_diagonal([graph] * B), to_time_major((u - m.u_mean) / m.u_std))
+    assert abs(value - v2) <= 1e-12 * v2
+    np.testing.assert_allclose(g, g2, rtol=1e-11, atol=1e-13)
+
+
+def test_wrong_number_of_graphs_is_an_input_error(graph):
+    m = make_model()
+    x0, u = data(B=3)
+    with pytest.raises(InputError) as e:
+        m.rollout(x0, [graph, graph], u)
+    assert e.value.field == "graph"
+    with pytest.raises(InputError):
+        m.rollout(x0, [graph] * 4, u)
+    x = m.rollout(x0, graph, u)
+    with pytest.raises(InputError):
+        loss_and_grad(m, x, [graph, graph], u)
+
+
+# ---------------------------------------------------------------------------
+# Invalid model files
+# ---------------------------------------------------------------------------
+def write_raw(path, dtype="f8"):
+    """A valid model file written with plain h5py from the format spec alone."""
+    rng = np.random.default_rng(0)
+    with h5py.File(path, "w") as f:
+        f.attrs.update(format="mpnode.model", format_version=1, state_dim=DX, control_dim=DU, message_dim=DM,
+                       hidden=H, activation="tanh", dt=0.1, substeps=3, integrator="rk4", zero_messages=0,
+                       self_messages=1, seed=42)
+        shapes = {"W1": (DX + DU + DM, H), "b1": (H,), "W2": (H, H), "b2": (H,), "W3": (H, DX + DM), "b3": (DX + DM,)}
+        for name, shape in shapes.items():
+            f[f"params/{name}"] = rng.standard_normal(shape).astype(dtype)
+        f["norm/x_mean"], f["norm/x_std"] = [0.1, 0.2], [1.5, 2.5]
+        f["norm/u_mean"], f["norm/u_std"] = [0.0, 1.0], [0.5, 4.0]
+    return path
+
+
+def test_raw_file_loads(tmp_path):
+    path = write_raw(tmp_path / "raw.h5", "f4")
+    m = Model.load(path)
+    assert m.dtype == np.float32 and m.spec.substeps == 3 and m.spec.self_messages and not m.spec.zero_messages
+    with h5py.File(path, "r") as f:
+        np.testing.assert_array_equal(m.params["W2"], f["params/W2"][()])
+    np.testing.assert_array_equal(m.x_std, [1.5, 2.5])
+    assert m.attrs == {"seed": 42}
+
+
+REQUIRED_ATTRS = ["format", "format_version", "state_dim", "control_dim", "message_dim", "hidden", "activation",
+                  "dt", "substeps", "integrator", "zero_messages", "self_messages"]
+WRONG_VALUES = [
+    ("format", "mpnode.trajectories"), ("format_version", 2), ("format_version", "1"),
+    ("state_dim", 0), ("state_dim", 2.0), ("control_dim", -1), ("message_dim", -1), ("hidden", 0),
+    ("activation", "relu"), ("dt", 0.0), ("dt", -0.1), ("dt", np.nan), ("dt", "fast"),
+    ("substeps", 0), ("substeps", 1.5), ("integrator", "rk38"), ("zero_messages", 2), ("self_messages", -1),
+]
+
+
+def load_error(path):
+    with pytest.raises(InputError) as e:
+        Model.load(path)
+    assert str(path) in str(e.value)
+    return e.value
+
+
+@pytest.mark.parametrize("name", REQUIRED_ATTRS)
+def test_missing_attribute_is_named(tmp_path, name):
+    path = write_raw(tmp_path / "m.h5")
+    with h5py.File(path, "a") as f:
+        del f.attrs[name]
+    err = load_error(path)
+    assert err.field == name and name in str(err)
+
+
+@pytest.mark.parametrize("name,value", WRONG_VALUES, ids=[f"{n}={v!r}" for n, v in WRONG_VALUES])
+def test_wrong_attribute_is_named(tmp_path, name, value):
+    path = write_raw(tmp_path / "m.h5")
+    with h5py.File(path, "a") as f:
+        f.attrs[name] = value
+    err = load_error(path)
+    assert err.field == name and name in str(err)
+
+
+def _reshape(name, shape):
+    def mutate(f):
+        del f[name]
+        f[name] = np.zeros(shape)
+    return mutate
+
+
+def _set(name, index, value):
+    def mutate(f):
+        f[name][index] = value
+    return mutate
+
+
+def _delete(name):
+    def mutate(f):
+        del f[name]
+    return mutate
+
+
+DATASET_CASES = [
+    ("params/W2", _reshape("params/W2", (H, H + 1))),
+    ("params/W1", _reshape("params/W1", (DX + DM, H))),  # control rows missing
+    ("params/b3", _reshape("params/b3", (DX,))),  # message outputs missing
+    ("params/W3", _delete("params/W3")),
+    ("params/b1", _set("params/b1", 3, np.nan)),
+    ("params/W2", _set("params/W2", (1, 2), np.inf)),
+    ("norm/x_mean", _set("norm/x_mean", 0, np.nan)),
+    ("norm/x_std", _set("norm/x_std", 1, 0.0)),
+    ("norm/x_std", _set("norm/x_std", 0, -1.0)),
+    ("norm/u_std", _set("norm/u_std", 1, 0.0)),
+    ("norm/u_std", _delete("norm/u_std")),
+    ("norm/x_mean", _reshape("norm/x_mean", (DX + 1,))),
+]
+
+
+@pytest.mark.parametrize("field,mutate", DATASET_CASES,
+                         ids=[f"{f}-{i}" for i, (f, _) in enumerate(DATASET_CASES)])
+def test_bad_dataset_is_named(tmp_path, field, mutate):
+    path = write_raw(tmp_path / "m.h5")
+    with h5py.File(path, "a") as f:
+        mutate(f)
+    err = load_error(path)
+    assert err.field == field and field in str(err)
+
+
+def test_missing_and_non_hdf5_files_are_input_errors(tmp_path):
+    load_error(tmp_path / "nope.h5")
+    bad = tmp_path / "bad.h5"
+    bad.write_text("not hdf5")
+    load_error(bad)
+
+
+# ---------------------------------------------------------------------------
+# Saving refuses broken models
+# ---------------------------------------------------------------------------
+def test_save_refuses_nan_weight_and_leaves_no_file(tmp_path):
+    m = make_model()
+    m.theta[5] = np.nan
+    path = tmp_path / "model.h5"
+    with pytest.raises(NumericalError):
+        m.save(path)
+    assert os.listdir(tmp_path) == []
+
+
+def test_save_refusal_keeps_the_previous_file(tmp_path):
+    path = tmp_path / "model.h5"
+    good = make_model()
+    good.save(path)
+    before = path.read_bytes()
+    bad = make_model()
+    bad.theta[-1] = np.inf
+    with pytest.raises(NumericalError):
+        bad.save(path)
+    assert path.read_bytes() == before
+    assert os.listdir(tmp_path) == ["model.h5"]
+
+
+# ---------------------------------------------------------------------------
+# import mpnode stays light
+# ---------------------------------------------------------------------------
+def test_import_mpnode_does_not_load_heavy_modules():
+    code = ("import sys, mpnode\n"
+            "heavy = [m for m in ('h5py', 'scipy', 'numba', 'click') if m in sys.modules]\n"
+            "print(','.join(heavy))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "", f"import mpnode loaded: {out.stdout.strip()}"
