@@ -1,0 +1,183 @@
+"""Numerical stability on hard cases: --substeps auto (step doubling), "step too large",
+the predictable horizon, the horizon curriculum and a SIGKILLed training run."""
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mpnode.cli.main import main
+from mpnode.data import Trajectories, read_trajectories, write_trajectories
+from mpnode.evaluate import evaluate, predictable_horizon
+from mpnode.stepsize import choose_substeps, doubling_estimate
+from test_train import fresh, tiny_linear
+
+
+def fast_model(scale):
+    """The tiny test model with its output layer scaled: dx/dt ~ scale, so the ODE is fast (stiff for RK4)."""
+    m = fresh(hidden=16).copy()
+    p = m.params
+    p["W3"][:] *= scale
+    p["b3"][:] = 0.3 * scale
+    return m
+
+
+def oscillator_model(w, damping=0.5, eps=0.05):
+    """A model whose field is (nearly) linear: dx/dt = A x with A = [[-damping, w], [-w, -damping]] per node.
+
+    Small first-layer weights keep both tanh layers in their linear range; the output layer
+    undoes the scale.  For w = 40 and dt = 0.1, h w = 4 is outside RK4's stability interval
+    on the imaginary axis (|z| <= 2.83): one substep blows up, two do not.
+    """
+    m = fresh(hidden=16).copy()
+    p = m.params
+    for a in p.values():
+        a[:] = 0
+    A = np.array([[-damping, w], [-w, -damping]])
+    p["W1"][:2, :2] = eps * np.eye(2)
+    p["W2"][:] = np.eye(16)
+    p["W3"][:2, :2] = A.T / eps
+    return m
+
+
+def fine_rollout(model, x0, graph, steps, substeps=64):
+    return model.with_spec(substeps=substeps).copy(dtype=np.float64).rollout(x0, graph, steps=steps)
+
+
+# ---------------------------------------------------------------------------
+# --substeps auto
+# ---------------------------------------------------------------------------
+def test_auto_substeps_on_a_fast_field_matches_a_fine_reference():
+    traj = tiny_linear(B=8, T=20)
+    m = fast_model(20)
+    s, report = choose_substeps(m, traj.x[:, 0], traj.graphs[0], tol=1e-4, horizon=20)
+    assert s > 1 and report["reached"] and report["substeps"] == s
+    assert report["estimate"] <= 1e-4 and report["probe_steps"] == 20
+    assert set(report["estimates"]) == {str(2 ** j) for j in range(s.bit_length())}  # 1, 2, ..., s tried
+    got = m.with_spec(substeps=s).copy(dtype=np.float64).rollout(traj.x[:, 0], traj.graphs[0], steps=20)
+    ref = fine_rollout(m, traj.x[:, 0], traj.graphs[0], 20, substeps=128)
+    err = np.abs(got - ref).max() / m.x_std.min()
+    assert err < 2e-4, err  # the step-doubling estimate is the error, to ~15/16
+    # one step coarser misses the tolerance: auto did not over-refine
+    coarse = m.with_spec(substeps=s // 2).copy(dtype=np.float64).rollout(traj.x[:, 0], traj.graphs[0], steps=20)
+    assert np.abs(coarse - ref).max() > 1e-4
+
+
+def test_auto_substeps_on_a_slow_field_is_one_and_reports_when_the_tolerance_is_out_of_reach():
+    traj = tiny_linear(B=8, T=20)
+    s, report = choose_substeps(fast_model(1), traj.x[:, 0], traj.graphs[0], horizon=20)
+    assert s == 1 and report["reached"] and list(report["estimates"]) == ["1"]
+    s, report = choose_substeps(fast_model(80), traj.x[:, 0], traj.graphs[0], tol=1e-9, max_substeps=8)
+    assert s == 8 and not report["reached"] and "no substep count" in report["message"]
+    assert doubling_estimate(np.array([np.nan]), np.array([0.0]), np.ones(1)) == np.inf
+
+
+# ---------------------------------------------------------------------------
+# A step too large for stability
+# ---------------------------------------------------------------------------
+def fast_data(tmp_path, w=40, T=20):
+    """A fast oscillator model saved to m.h5 and its own fine (64-substep) trajectories in d.h5."""
+    m = oscillator_model(w)
+    base = tiny_linear(B=6, T=T)
+    x = fine_rollout(m, base.x[:, 0], base.graphs[0], T)
+    traj = Trajectories(x=x, graphs=base.graphs, dt=m.spec.dt, system="fast_model")
+    m.save(tmp_path / "m.h5")
+    write_trajectories(tmp_path / "d.h5", traj)
+    return m, traj
+
+
+def test_step_too_large_is_detected_and_more_substeps_fix_it(tmp_path):
+    m, traj = fast_data(tmp_path)
+    r = evaluate(m, traj)
+    assert r.n_bad > 0 and r.substeps == 1
+    st = r.stability
+    assert st["step_too_large"] and st["stable_substeps"] > 1 and st["suggested_substeps"] >= st["stable_substeps"]
+    assert st["stable_substeps"] == 2  # |R(4i)| = 7.6 > 1, |R(2i)| = 0.75 < 1
+    assert f"--substeps {st['suggested_substeps']}" in st["message"] and "h = 0.1" in st["message"]
+    fixed = evaluate(m, traj, substeps=st["suggested_substeps"])
+    assert fixed.n_bad == 0 and not fixed.stability["step_too_large"] and fixed.nmse < 1e-6
+    auto = evaluate(m, traj, substeps="auto")
+    assert auto.substeps > 1 and auto.n_bad == 0 and auto.substeps_report["reached"]
+    # a blow-up that more substeps do not cure is not blamed on the step
+    slow = fast_model(1)
+    wild = Trajectories(x=traj.x * 1e-3, graphs=traj.graphs, dt=traj.dt, system="x")  # tiny data box
+    r = evaluate(slow, wild)
+    assert r.n_bad > 0 and not r.stability["step_too_large"] and "not a step-size problem" in r.stability["message"]
+
+
+def test_cli_eval_reports_step_too_large_and_auto_substeps(tmp_path):
+    fast_data(tmp_path)
+    runner = CliRunner()
+    m, d = str(tmp_path / "m.h5"), str(tmp_path / "d.h5")
+    res = runner.invoke(main, ["eval", m, d, "--json"])
+    assert res.exit_code == 0, res.output
+    rep = json.loads(res.output)
+    assert rep["step_too_large"] is True and rep["suggested_substeps"] > 1 and rep["substeps"] == 1
+    res = runner.invoke(main, ["eval", m, d])
+    assert res.exit_code == 0
+    assert "is too large for this model on this data" in res.output and "try --substeps" in res.output
+    res = runner.invoke(main, ["eval", m, d, "--substeps", "auto", "--json", "--predictions", str(tmp_path / "p.h5")])
+    assert res.exit_code == 0, res.output
+    rep = json.loads(res.output)
+    assert rep["substeps"] > 1 and rep["substeps_auto"]["reached"] and rep["step_too_large"] is False
+    assert rep["blown_up_trajectories"] == 0
+    p = read_trajectories(tmp_path / "p.h5")
+    assert p.attrs["substeps"] == rep["substeps"] and p.attrs["substeps_auto"] == 1
+    assert p.attrs["substeps_tol"] == pytest.approx(1e-4)
+    res = runner.invoke(main, ["eval", m, d, "--substeps", "auto"])
+    assert f"auto chose {rep['substeps']}" in res.output
+    res = runner.invoke(main, ["eval", m, d, "--substeps", "zero"])
+    assert res.exit_code == 2 and "auto" in res.output
+    assert "step-doubling" in runner.invoke(main, ["eval", "--help"]).output
+
+
+def test_cli_simulate_auto_substeps_and_step_too_large(tmp_path):
+    oscillator_model(80).with_spec(dt=0.05).save(tmp_path / "m.h5")
+    runner = CliRunner()
+    args = ["simulate", str(tmp_path / "m.h5"), "coupled_pendulum", "-B", "4", "-T", "40"]
+    res = runner.invoke(main, args + ["-o", str(tmp_path / "s.h5")])
+    assert "too large" in res.output and "--substeps" in res.output, res.output
+    res = runner.invoke(main, args + ["-o", str(tmp_path / "a.h5"), "--substeps", "auto"])
+    assert res.exit_code == 0, res.output
+    a = read_trajectories(tmp_path / "a.h5")
+    assert a.attrs["substeps"] > 1 and a.attrs["substeps_auto"] == 1 and np.all(np.isfinite(a.x))
+
+
+# ---------------------------------------------------------------------------
+# Predictable horizon
+# ---------------------------------------------------------------------------
+def test_predictable_horizon_on_a_known_divergence():
+    rng = np.random.default_rng(0)
+    B, T = 6, 16
+    truth = rng.normal(size=(B, T + 1, 3, 2)) * np.array([1.0, 5.0])
+    std = truth.reshape(-1, 2).std(axis=0)
+    t = np.arange(T + 1)
+    # trajectory b's normalised MSE is 1e-6 * 4**(t - b): above 0.1 from t = 9 + b, above 1 from t = 10 + b
+    amp = np.sqrt(1e-6 * 4.0 ** (t[None, :] - np.arange(B)[:, None]))
+    pred = truth + amp[:, :, None, None] * std
+    pred[5] = truth[5]  # one trajectory never diverges
+    h = predictable_horizon(pred, truth, dt=0.5, thresholds=(0.1, 1.0))
+    assert h["0.1"]["first_step"] == [9, 10, 11, 12, 13, None]
+    assert h["1"]["first_step"] == [10, 11, 12, 13, 14, None]
+    assert h["0.1"]["median_step"] == 11 and h["0.1"]["median_time"] == 5.5  # lower median of 9..13, beyond
+    assert h["0.1"]["beyond_horizon"] == 1
+    # a blow-up exceeds every threshold at once; most trajectories beyond T: the median is "beyond"
+    bad = np.zeros((B, T + 1), bool)
+    bad[5, 3:] = True
+    h = predictable_horizon(pred, truth, 0.5, (0.1,), bad)
+    assert h["0.1"]["first_step"][5] == 3
+    h = predictable_horizon(truth, truth, 0.5, (0.1,))
+    assert h["0.1"]["median_step"] is None and h["0.1"]["beyond_horizon"] == B
+
+
+def test_eval_reports_the_predictable_horizon(tmp_path):
+    m, traj = fast_data(tmp_path, w=20, T=30)
+    runner = CliRunner()
+    res = runner.invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d.h5"), "--json"])
+    assert res.exit_code == 0, res.output
+    hz = json.loads(res.output)["predictable_horizon"]
+    want = predictable_horizon(evaluate(m, traj).predictions, traj.x, traj.dt)
+    assert hz == json.loads(json.dumps(want))
+    assert set(hz) == {"0.1", "1"}
+    res = runner.invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d.h5")])
+    assert "predictable horizon" in res.output
