@@ -6,6 +6,26 @@ data do not depend on the number of workers, on how trajectories are chunked, or
 (the first 10 trajectories of a 1000-trajectory file are those of a 10-trajectory file).
 A trajectory that fails (solver error, non-finite state, leaving the system's valid
 region) is re-drawn from the same generator, at most ``max_tries`` times.
+
+Stiffness switch.  When the scene's integrator is explicit (RK23, RK45, DOP853) each
+trajectory is first integrated with it under a budget of ``STIFF_NFEV_PER_STEP`` (200)
+right-hand-side evaluations per saved step (counted by wrapping the RHS: DOP853 spends 12
+per step, so this is ~16 accepted steps per dt).  The attempt is declared stiff, abandoned
+and redone from the SAME initial state with the implicit ``FALLBACK_METHOD`` (Radau, same
+rtol/atol) when
+
+* it exceeds that budget (the step size is held down by stability, not accuracy: the
+  non-stiff reference systems need 2-30 evaluations per step at rtol = atol = 1e-9), or
+* the explicit solver gives up (solve_ivp status -1, e.g. "required step size is less than
+  spacing between numbers": step-size collapse).
+
+Leaving the valid region (the pendulum guard) or a non-finite state is not stiffness: the
+trajectory is re-drawn as before (after the fallback has failed too, if it was tried).  The
+decision depends only on the trajectory's initial state, so it is reproducible like the data.
+`generate` records it: attributes ``fallback_integrator`` and ``fallback_used`` (how many
+trajectories needed it) and ``aux/integrator_fallback`` [B] (1 where trajectory b was
+integrated with the fallback), so every trajectory can be re-integrated with its own method.
+Implicit scene integrators (Radau, BDF, LSODA) run as they are, without budget.
 """
 import math
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -19,6 +39,17 @@ from mpnode.errors import NumericalError
 from .initial import get_sampler
 from .scenes import check_scene
 from .systems import get_system
+
+#: explicit solve_ivp methods, the ones the stiffness switch watches
+EXPLICIT_METHODS = ("RK23", "RK45", "DOP853")
+#: the implicit method a stiff trajectory is redone with
+FALLBACK_METHOD = "Radau"
+#: RHS evaluations per saved step an explicit attempt may spend before it is declared stiff
+STIFF_NFEV_PER_STEP = 200
+
+
+class StiffnessDetected(NumericalError):
+    """An explicit integration gave up or exceeded its evaluation budget (see the module docstring)."""
 
 
 def generate(scene, *, workers=2, max_tries=10, progress=None):
@@ -41,24 +72,32 @@ def generate(scene, *, workers=2, max_tries=10, progress=None):
     drawn = system.draw(scalars, n_nodes, np.random.default_rng(scene.system_seed))
     sampler = get_sampler(scene.initial, system, n_nodes, scene.name, "initial")
     graph_index = np.arange(B) % len(graphs)
-    x, redraws = simulate(system.name, {**scalars, **drawn}, graphs, graph_index, sampler, scene.horizon,
-                          scene.dt, scene.seed, method=scene.integrator, rtol=scene.rtol, atol=scene.atol,
-                          max_tries=max_tries, workers=workers, progress=progress)
+    x, redraws, fallback = simulate(system.name, {**scalars, **drawn}, graphs, graph_index, sampler,
+                                    scene.horizon, scene.dt, scene.seed, method=scene.integrator, rtol=scene.rtol,
+                                    atol=scene.atol, max_tries=max_tries, workers=workers, progress=progress,
+                                    return_fallback=True)
     attrs = dict(scalars, seed=scene.seed, system_seed=scene.system_seed, integrator=scene.integrator,
                  rtol=scene.rtol, atol=scene.atol, scene=scene.name, description=scene.description,
                  initial=scene.initial, max_tries=max_tries, redrawn=int(redraws.sum()),
                  **scene.graph.describe())
+    aux = {}
+    if scene.integrator in EXPLICIT_METHODS:
+        attrs.update(fallback_integrator=FALLBACK_METHOD, fallback_used=int(fallback.sum()),
+                     stiff_nfev_per_step=STIFF_NFEV_PER_STEP)
+        aux["integrator_fallback"] = fallback.astype(np.int8)
     if scene.initial == "uniform":
         attrs.update(initial_low=np.asarray(system.low), initial_high=np.asarray(system.high))
     return Trajectories(x=x, graphs=graphs, dt=scene.dt, system=system.name,
-                        graph_index=graph_index if len(graphs) > 1 else None, attrs=attrs, params=drawn)
+                        graph_index=graph_index if len(graphs) > 1 else None, attrs=attrs, params=drawn, aux=aux)
 
 
-def integrate(rhs, x0, n_steps, dt, method="DOP853", rtol=1e-9, atol=1e-9, guard=None):
+def integrate(rhs, x0, n_steps, dt, method="DOP853", rtol=1e-9, atol=1e-9, guard=None, max_nfev=None):
     """One trajectory saved at t = k*dt, k = 0..n_steps.
 
     rhs : f(t, y) on the flat state, shape (N*dx,);  x0 : shape (N, dx)
     guard : g(t, y) > 0 while the state is valid (stops the solver as a terminal event), or None
+    max_nfev : with an explicit method, raise StiffnessDetected once the RHS has been evaluated
+        more than this many times or the solver gives up (step-size collapse); None: no budget
     Returns x : shape (n_steps+1, N, dx); raises NumericalError saying why it failed.
     """
     x0 = np.asarray(x0, dtype=np.float64)
@@ -68,8 +107,16 @@ def integrate(rhs, x0, n_steps, dt, method="DOP853", rtol=1e-9, atol=1e-9, guard
         if guard(0.0, x0.ravel()) <= 0:
             raise NumericalError("initial state is outside the region where the system is defined")
         events = _terminal(guard)
-    sol = solve_ivp(rhs, (0.0, t_eval[-1]), x0.ravel(), method=method, t_eval=t_eval,
-                    rtol=rtol, atol=atol, events=events)
+    watch = max_nfev is not None and method in EXPLICIT_METHODS
+    if watch:
+        rhs = _Budget(rhs, max_nfev)
+    try:
+        sol = solve_ivp(rhs, (0.0, t_eval[-1]), x0.ravel(), method=method, t_eval=t_eval,
+                        rtol=rtol, atol=atol, events=events)
+    except _OverBudget:
+        raise StiffnessDetected(f"{method} needed more than {max_nfev} right-hand-side evaluations") from None
+    if watch and sol.status == -1:
+        raise StiffnessDetected(f"{method} gave up at t = {sol.t[-1]:g}: {sol.message}")
     if sol.status != 0:
         why = "left the region where the system is defined" if sol.status == 1 else sol.message
         raise NumericalError(f"solver stopped at t = {sol.t[-1] if sol.t.size else 0.0:g}: {why}")
@@ -78,6 +125,39 @@ def integrate(rhs, x0, n_steps, dt, method="DOP853", rtol=1e-9, atol=1e-9, guard
     if guard is not None and np.any(guard(None, sol.y) <= 0):
         raise NumericalError("a saved state is outside the region where the system is defined")
     return sol.y.T.reshape(n_steps + 1, *x0.shape)
+
+
+def integrate_switching(rhs, x0, n_steps, dt, method="DOP853", rtol=1e-9, atol=1e-9, guard=None,
+                        fallback=FALLBACK_METHOD, nfev_per_step=STIFF_NFEV_PER_STEP):
+    """`integrate` with the stiffness switch of the module docstring.
+
+    Returns (x, used): x shape (n_steps+1, N, dx); used is ``method`` or ``fallback`` (the
+    latter when the explicit attempt was declared stiff).  NumericalError if both fail.
+    """
+    if method not in EXPLICIT_METHODS or fallback is None:
+        return integrate(rhs, x0, n_steps, dt, method, rtol, atol, guard), method
+    try:
+        return integrate(rhs, x0, n_steps, dt, method, rtol, atol, guard,
+                         max_nfev=nfev_per_step * max(1, n_steps)), method
+    except StiffnessDetected:
+        return integrate(rhs, x0, n_steps, dt, fallback, rtol, atol, guard), fallback
+
+
+class _OverBudget(Exception):
+    pass
+
+
+class _Budget:
+    """The RHS, counting its calls and raising _OverBudget past ``limit``."""
+
+    def __init__(self, rhs, limit):
+        self.rhs, self.limit, self.nfev = rhs, limit, 0
+
+    def __call__(self, t, y):
+        self.nfev += 1
+        if self.nfev > self.limit:
+            raise _OverBudget
+        return self.rhs(t, y)
 
 
 def _terminal(guard):
@@ -89,27 +169,32 @@ def _terminal(guard):
 
 
 def simulate(system, params, graphs, graph_index, sampler, n_steps, dt, seed, *,
-             method="DOP853", rtol=1e-9, atol=1e-9, max_tries=10, workers=2, progress=None):
+             method="DOP853", rtol=1e-9, atol=1e-9, max_tries=10, workers=2, progress=None,
+             fallback=FALLBACK_METHOD, return_fallback=False):
     """Integrate B = len(graph_index) trajectories of ``system``.
 
     params : scalar and drawn array parameters (see systems.make_rhs)
     graphs : list of Graph;  graph_index : shape (B,), the graph of each trajectory
     sampler : sampler(rng, system, n_nodes) -> x0 of shape (N, dx), picklable (initial.py)
     progress : called with the number of trajectories just finished, or None
-    Returns (x, redraws): x shape (B, n_steps+1, N, dx) float64, redraws shape (B,) int.
+    fallback : the implicit method of the stiffness switch (module docstring), None to switch it off
+    Returns (x, redraws): x shape (B, n_steps+1, N, dx) float64, redraws shape (B,) int;
+    with ``return_fallback`` also used_fallback, shape (B,) bool (True: integrated with ``fallback``).
     Raises NumericalError when a trajectory still fails after ``max_tries`` initial states.
     """
     job = dict(system=system, params=params, graphs=graphs, graph_index=np.asarray(graph_index),
                sampler=sampler, n_steps=n_steps, dt=dt, seed=seed, method=method, rtol=rtol,
-               atol=atol, max_tries=max_tries)
+               atol=atol, max_tries=max_tries, fallback=fallback)
     B = len(graph_index)
     size = max(1, min(25, math.ceil(B / (4 * workers))))
     chunks = [range(i, min(i + size, B)) for i in range(0, B, size)]
     x = np.empty((B, n_steps + 1, graphs[0].n_nodes, get_system(system).state_dim))
     redraws = np.zeros(B, dtype=np.int64)
+    used_fallback = np.zeros(B, dtype=bool)
 
-    def keep(chunk, xs, rs):
+    def keep(chunk, xs, rs, fs):
         x[chunk.start:chunk.stop], redraws[chunk.start:chunk.stop] = xs, rs
+        used_fallback[chunk.start:chunk.stop] = fs
         if progress is not None:
             progress(len(chunk))
 
@@ -129,7 +214,7 @@ def simulate(system, params, graphs, graph_index, sampler, n_steps, dt, seed, *,
             except BaseException:
                 pool.shutdown(cancel_futures=True)
                 raise
-    return x, redraws
+    return (x, redraws, used_fallback) if return_fallback else (x, redraws)
 
 
 # ---- worker side: the job is set up once per process, then chunks of indices run ----
@@ -143,9 +228,9 @@ def _init(job):
 
 
 def _run(chunk):
-    """Trajectories ``chunk`` (a range of b): x shape (len, T+1, N, dx), redraws shape (len,)."""
+    """Trajectories ``chunk`` (a range of b): x (len, T+1, N, dx), redraws (len,), used_fallback (len,)."""
     j = _JOB
-    xs, rs = [], []
+    xs, rs, fs = [], [], []
     for b in chunk:
         rng = np.random.default_rng(np.random.SeedSequence(j["seed"], spawn_key=(b,)))
         g = int(j["graph_index"][b])
@@ -153,8 +238,10 @@ def _run(chunk):
         for tries in range(j["max_tries"]):
             x0 = j["sampler"](rng, j["sys"], n_nodes)
             try:
-                xs.append(integrate(j["rhs"][g], x0, j["n_steps"], j["dt"], j["method"],
-                                    j["rtol"], j["atol"], j["sys"].guard))
+                x, used = integrate_switching(j["rhs"][g], x0, j["n_steps"], j["dt"], j["method"], j["rtol"],
+                                              j["atol"], j["sys"].guard, fallback=j["fallback"])
+                xs.append(x)
+                fs.append(used != j["method"])
                 break
             except NumericalError as e:
                 problem = e
@@ -162,4 +249,4 @@ def _run(chunk):
             raise NumericalError(f"{j['system']}: trajectory {b} failed for {j['max_tries']} initial "
                                  f"states in a row (last: {problem}); check the parameters and dt")
         rs.append(tries)
-    return np.stack(xs), np.asarray(rs, dtype=np.int64)
+    return np.stack(xs), np.asarray(rs, dtype=np.int64), np.asarray(fs, dtype=bool)
