@@ -109,8 +109,8 @@ class Plan:
             if id(g) not in seen:
                 a = np.zeros((g.n_nodes, g.n_nodes), dtype=dtype)
                 a[np.repeat(np.arange(g.n_nodes), g.degrees()), g.indices] = 1
-                if self_messages:
-                    a[np.diag_indices(g.n_nodes)] = 1
+                if self_messages:  # += : a self-loop in the row and hearing oneself both count
+                    a[np.diag_indices(g.n_nodes)] += 1
                 seen[id(g)] = offset
                 mats.append(a.ravel())
                 mats_t.append(np.ascontiguousarray(a.T).ravel())
