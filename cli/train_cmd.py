@@ -49,6 +49,12 @@ def training_options(f):
                      help="Seed of the initial weights, the split, the noise and the shuffles."),
         click.option("--substeps", type=click.IntRange(min=1), help="RK4 steps per dt (train default 1; "
                      "finetune default: the model's)."),
+        click.option("--horizon-curriculum", "curriculum", callback=_parse_curriculum, metavar="W1,W2,...,full",
+                     help="Train first on windows of W1 steps, then W2, ..., then the full horizon (e.g. 5,10,full; "
+                          "'full' is implied at the end).  Each trajectory is cut into consecutive windows, each "
+                          "starting from its true state; validation stays on the full horizon."),
+        click.option("--curriculum-epochs", type=click.IntRange(min=1), default=100, show_default=True,
+                     help="Epochs per window length of --horizon-curriculum (the full horizon gets the rest)."),
         click.option("--resume", is_flag=True,
                      help="Continue the run whose checkpoint (OUTPUT.state) is beside -o; its settings are kept "
                           "except --epochs and --time-limit."),
@@ -60,6 +66,25 @@ def training_options(f):
     return f
 
 
+def _parse_curriculum(ctx, param, value):
+    """'5,10,full' -> (5, 10): increasing window lengths in steps; 'full' only last (and implied)."""
+    if value is None:
+        return ()
+    items = [v.strip().lower() for v in value.split(",") if v.strip()]
+    if items and items[-1] == "full":
+        items = items[:-1]
+    windows = []
+    for v in items:
+        try:
+            w = int(v)
+        except ValueError:
+            raise click.BadParameter(f"{v!r} is not a window length (an integer >= 1, or 'full' at the end)")
+        if w < 1 or (windows and w <= windows[-1]):
+            raise click.BadParameter(f"window lengths must be increasing integers >= 1, got {value!r}")
+        windows.append(w)
+    return tuple(windows)
+
+
 def _config(o, norm):
     from mpnode.train import TrainConfig
 
@@ -68,6 +93,7 @@ def _config(o, norm):
                        clip_mode="global" if o["clip_global"] else "per-array", val_split=o["val_split"],
                        noise=o["noise"], loss=o["loss"], patience=o["patience"], lr_decay=o["lr_decay"],
                        min_lr=o["min_lr"], seed=o["seed"], norm=norm, max_bad_steps=o["max_bad_steps"],
+                       curriculum=o["curriculum"], curriculum_epochs=o["curriculum_epochs"],
                        time_limit=None if o["time_limit"] is None else o["time_limit"] * 60.0).check()
 
 
@@ -96,8 +122,9 @@ def run_training(model, datasets, sources, config, output, resume, attrs):
     def show(record):
         if record is None:
             return ""
+        window = f"  window {record['window']}" if record.get("window") is not None else ""
         return (f"epoch {record['epoch']}  train {_fmt(record['train_loss'])}  val {_fmt(record['val_loss'])}  "
-                f"best {_fmt(record['best_val_loss'])}  lr {record['lr']:.2g}")
+                f"best {_fmt(record['best_val_loss'])}  lr {record['lr']:.2g}{window}")
 
     def progress(record):
         bar = state["bar"]
@@ -156,8 +183,13 @@ def train_cmd(data, message_dim, hidden, zero_messages, self_messages, dtype, tr
     end on fresh trajectories of the scene (another seed).
 
     Normalisation (z-score per state dimension) is fitted on the training split only
-    and stored in the model.  Beside OUTPUT: OUTPUT.log.jsonl (one JSON line per epoch)
-    and OUTPUT.state (checkpoint for --resume).
+    and stored in the model.  Beside OUTPUT: OUTPUT.log.jsonl (one JSON line per epoch:
+    losses, mean and max gradient norm, learning rate, window length and curriculum
+    stage; each line written whole by one write, so a killed run leaves a readable log)
+    and OUTPUT.state (checkpoint for --resume; also after a kill -9, from the last
+    checkpoint).
+
+    Chaotic systems: --horizon-curriculum 5,10,full trains on short windows first.
 
     Exit status: 0 trained; 2 bad input; 3 training diverged (the best finite model is
     kept); 130 interrupted (continue with --resume).

@@ -29,6 +29,21 @@ cuts them into batches and shuffles the order of all batches together, so severa
 are interleaved in proportion to their size.  The shuffle of epoch e depends only on
 (seed, e), which is what makes ``resume`` reproduce an uninterrupted run exactly.
 
+Horizon curriculum (the seed code's ``horizonwindow``; ``TrainConfig.curriculum``): with
+window lengths w1 < w2 < ..., the first ``curriculum_epochs`` epochs train on windows of
+w1 steps, the next ``curriculum_epochs`` on windows of w2, ..., and the remaining epochs on
+the full horizon, so a chaotic system (Lorenz) is learned without the exploding gradients
+of long rollouts from random weights.  Every training trajectory of T steps is cut into
+consecutive windows of w steps, each starting from its own (noisy) true state: starts
+0, w, 2w, ... and, when w does not divide T, one last window ending at T (overlapping
+the one before), so every transition is trained on and the epoch is deterministic --
+which keeps resume exact (the stage is a function of the epoch number alone); random
+windows would add sampling noise for no gain in coverage.  A batch holds
+``batch_size`` windows.  Validation (model selection, learning-rate cuts) stays on the
+full horizon: the saved model is the best one at the job it is for.  The loss sums over
+steps, so the logged train_loss is comparable within a stage only; every log line
+records its ``window`` (steps per rollout) and ``stage``.
+
 Files beside the output model ``OUT``: ``OUT.log.jsonl`` (one JSON object per epoch) and
 ``OUT.state`` (a NumPy .npz written atomically: current and best weights, Adam moments,
 learning rate, counters, configuration, normalisation and a fingerprint of the data).
@@ -81,11 +96,19 @@ class TrainConfig:
     blowup: float = 100.0
     time_limit: float = None
     checkpoint_seconds: float = 10.0
+    curriculum: tuple = ()
+    curriculum_epochs: int = 100
 
     def check(self):
         """Raise InputError naming the option for a value that cannot work."""
         def bad(name, problem, expected):
             raise InputError("training options", name, problem, expected)
+
+        self.curriculum = tuple(int(w) for w in self.curriculum)
+        if any(w < 1 for w in self.curriculum):
+            bad("curriculum", f"is {list(self.curriculum)}", "window lengths >= 1 (steps)")
+        if self.curriculum_epochs < 1:
+            bad("curriculum_epochs", f"is {self.curriculum_epochs}", "an integer >= 1")
 
         if self.epochs < 0:
             bad("epochs", f"is {self.epochs}", "an integer >= 0")
@@ -281,6 +304,49 @@ def prepare(model, datasets, config):
     return train, [v for v in val if v.n], split
 
 
+def curriculum_stage(config, epoch):
+    """(stage, window) of epoch ``epoch`` (1-based): window is None in the full-horizon stage."""
+    stage = min((epoch - 1) // config.curriculum_epochs, len(config.curriculum)) if config.curriculum else 0
+    return stage, (config.curriculum[stage] if stage < len(config.curriculum) else None)
+
+
+def window_starts(horizon, window):
+    """Start steps of the windows of ``window`` steps covering 0..horizon (see the module docstring).
+
+    Consecutive windows 0, w, 2w, ...; when w does not divide T a last window ends at T.
+    ``window >= horizon`` gives the whole trajectory: [0].
+    """
+    if window >= horizon:
+        return np.zeros(1, dtype=np.int64)
+    starts = list(range(0, horizon - window + 1, window))
+    if starts[-1] + window < horizon:
+        starts.append(horizon - window)
+    return np.asarray(starts, dtype=np.int64)
+
+
+def window_part(part, window):
+    """The windows of ``window`` steps of every trajectory of ``part`` as a new _Part.
+
+    Window j of trajectory b becomes trajectory b * n_windows + j: x (w+1, B*n_windows, N, dx).
+    """
+    t = part.x.shape[0] - 1
+    starts = window_starts(t, window)
+    w = min(window, t)
+    out = object.__new__(_Part)
+    out.__dict__.update(part.__dict__)
+    nw = len(starts)
+    t1, b, n, dx = part.x.shape
+    out.x = np.ascontiguousarray(np.stack([part.x[a:a + w + 1] for a in starts], axis=2)).reshape(w + 1, b * nw, n, dx)
+    if part.u is not None:
+        out.u = np.ascontiguousarray(np.stack([part.u[a:a + w] for a in starts], axis=2)).reshape(w, b * nw, n, -1)
+    out.gi = np.repeat(part.gi, nw)
+    out.index = np.repeat(part.index, nw)
+    out.starts = starts
+    out.n = b * nw
+    out._graph_cache = {}
+    return out
+
+
 def epoch_batches(train_parts, batch_size, seed, epoch):
     """The batches of one epoch: list of (part number, local indices), shuffled."""
     rng = np.random.default_rng([seed, 1, epoch])
@@ -459,7 +525,8 @@ def fit(model, datasets, config=None, output=None, *, sources=None, resume=False
         best_theta, best_epoch, last_improve = theta.copy(), 0, 0
         history = []
         record = {"epoch": 0, "train_loss": None, "val_loss": v0, "best_val_loss": best_val, "grad_norm": None,
-                  "lr": opt.lr, "seconds": 0.0, "elapsed": 0.0, "skipped_steps": 0, "improved": True}
+                  "lr": opt.lr, "seconds": 0.0, "elapsed": 0.0, "skipped_steps": 0, "improved": True,
+                  "window": None, "stage": None}
         if output is not None:
             with atomic_path(log_path(output)) as tmp, open(tmp, "w") as f:
                 f.write(json.dumps({k: _jsonable(v) for k, v in record.items()}) + "\n")
@@ -480,7 +547,8 @@ def fit(model, datasets, config=None, output=None, *, sources=None, resume=False
                 "last_improve": np.int64(last_improve), "bad_streak": np.int64(bad_streak),
                 "elapsed": np.float64(elapsed_before + (time.perf_counter() - t_start)),
                 "config": config_json, "fingerprint": fp, "spec": spec_json, "model_attrs": json.dumps(model.attrs, default=str),
-                "x_mean": model.x_mean, "x_std": model.x_std, "u_mean": model.u_mean, "u_std": model.u_std}
+                "x_mean": model.x_mean, "x_std": model.x_std, "u_mean": model.u_mean, "u_std": model.u_std,
+                "curriculum_stage": np.int64(curriculum_stage(config, max(epoch, 1))[0])}
         snap.update(opt.state())
         snap.update(best_moments=best_moments.copy(), best_t=np.int64(best_t), ref_loss=np.float64(ref_loss))
         return snap
@@ -497,14 +565,26 @@ def fit(model, datasets, config=None, output=None, *, sources=None, resume=False
     last_state_save = -math.inf
     snap = snapshot()
     status, message = "completed", f"trained {config.epochs} epochs"
-    log_file = open(log_path(output), "a") if output is not None else None
+    log_fd = os.open(log_path(output), os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644) if output is not None else None
+    horizons = {p.x.shape[0] - 1 for p in train_parts}
+    full_window = horizons.pop() if len(horizons) == 1 else None
+    windowed = {}  # stage -> windowed training parts (only the current stage is kept)
     try:
         while epoch < config.epochs:
             t0 = time.perf_counter()
             tl_sum, tl_nodes, gn_sum, gn_max, n_steps, skipped = 0.0, 0, 0.0, 0.0, 0, 0
             stop_now = False
-            for p, sel in epoch_batches(train_parts, config.batch_size, config.seed, epoch + 1):
-                x, u, g = train_parts[p].batch(sel)
+            stage, window = curriculum_stage(config, epoch + 1)
+            parts = train_parts
+            if window is not None:
+                if stage not in windowed:
+                    windowed = {stage: [window_part(part, window) for part in train_parts]}
+                parts = windowed[stage]
+            if stage != curriculum_stage(config, epoch)[0] and epoch > 0 and config.curriculum:
+                notify(f"epoch {epoch + 1}: curriculum stage {stage + 1} of {len(config.curriculum) + 1}: "
+                       + (f"windows of {window} steps" if window is not None else "the full horizon"))
+            for p, sel in epoch_batches(parts, config.batch_size, config.seed, epoch + 1):
+                x, u, g = parts[p].batch(sel)
                 loss, gtheta, _ = integrate.loss_and_grad(spec, theta, x, g, u, config.loss)
                 grad[:] = gtheta
                 if not math.isfinite(loss):
@@ -563,11 +643,12 @@ def fit(model, datasets, config=None, output=None, *, sources=None, resume=False
             record = {"epoch": epoch, "train_loss": tl_sum / tl_nodes if tl_nodes else None, "val_loss": val,
                       "best_val_loss": best_val, "grad_norm": gn_sum / n_steps if n_steps else None,
                       "grad_norm_max": gn_max if n_steps else None, "lr": opt.lr, "seconds": now - t0,
-                      "elapsed": elapsed_before + now - t_start, "skipped_steps": skipped, "improved": improved}
+                      "elapsed": elapsed_before + now - t_start, "skipped_steps": skipped, "improved": improved,
+                      "window": full_window if window is None else min(window, full_window or window),
+                      "stage": stage}
             history.append(record)
-            if log_file is not None:
-                log_file.write(json.dumps({k: _jsonable(v) for k, v in record.items()}) + "\n")
-                log_file.flush()
+            if log_fd is not None:
+                _append_line(log_fd, json.dumps({k: _jsonable(v) for k, v in record.items()}))
             snap = snapshot()
             if improved:
                 save_best()
@@ -583,8 +664,8 @@ def fit(model, datasets, config=None, output=None, *, sources=None, resume=False
     except KeyboardInterrupt:
         status, message = "interrupted", f"interrupted during epoch {epoch + 1}; the last finished epoch is saved"
     finally:
-        if log_file is not None:
-            log_file.close()
+        if log_fd is not None:
+            os.close(log_fd)
     if output is not None:
         _save_state(state_path(output), snap)  # the last finished epoch: resume continues from here
     best = model.copy()
@@ -594,6 +675,35 @@ def fit(model, datasets, config=None, output=None, *, sources=None, resume=False
         message = f"nothing to do: the run already has {epoch} epochs (raise --epochs to continue)"
     return TrainResult(best, status, message, best_val, best_epoch, epoch, opt.lr,
                        elapsed_before + time.perf_counter() - t_start, history, split)
+
+
+def _append_line(fd, line):
+    """Append one log line with a single write() on an O_APPEND descriptor.
+
+    A run killed at any moment (SIGKILL, power) leaves whole lines only: the line is
+    written by one system call, never half by a buffered writer flushing in pieces.
+    """
+    data = (line + "\n").encode()
+    written = os.write(fd, data)
+    while written < len(data):  # not seen for regular files; finish rather than tear the line
+        written += os.write(fd, data[written:])
+
+
+def read_log(path):
+    """The records of a training log (list of dicts), skipping a line a crash could have cut.
+
+    `fit` writes every line with one write(), so a cut line should not occur; the reader
+    still tolerates one (the last line, without its newline) rather than fail on it.
+    """
+    records = []
+    with open(path) as f:
+        for line in f:
+            try:
+                records.append(json.loads(line))
+            except ValueError:
+                if line.endswith("\n"):
+                    raise
+    return records
 
 
 def _truncate_log(path, epoch):

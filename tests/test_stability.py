@@ -181,3 +181,74 @@ def test_eval_reports_the_predictable_horizon(tmp_path):
     assert set(hz) == {"0.1", "1"}
     res = runner.invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d.h5")])
     assert "predictable horizon" in res.output
+
+
+# ---------------------------------------------------------------------------
+# Horizon curriculum
+# ---------------------------------------------------------------------------
+def test_window_starts_cover_the_horizon_with_consecutive_windows():
+    from mpnode.train import window_starts
+
+    assert list(window_starts(10, 5)) == [0, 5]
+    assert list(window_starts(10, 3)) == [0, 3, 6, 7]  # the last window ends at T
+    assert list(window_starts(10, 10)) == [0] and list(window_starts(10, 50)) == [0]
+    assert list(window_starts(10, 1)) == list(range(10))
+
+
+def test_window_part_cuts_every_trajectory_into_windows_from_true_states():
+    from mpnode import train
+
+    traj = tiny_linear(B=6, T=10)
+    m = fresh()
+    tr, _, _ = train.prepare(m, [traj], train.TrainConfig(val_split=0.0, noise=0.0))
+    part = tr[0]
+    w = train.window_part(part, 4)  # starts 0, 4, 6
+    assert w.x.shape == (5, 6 * 3, 2, 2) and w.n == 18 and w.gi.shape == (18,)
+    for b in range(6):
+        for j, a in enumerate([0, 4, 6]):
+            np.testing.assert_array_equal(w.x[:, b * 3 + j], part.x[a:a + 5, b])
+    x, u, g = w.batch(np.array([0, 4, 17]))
+    assert x.shape == (5, 3 * 2, 2) and u is None and g.n_nodes == 6
+    np.testing.assert_array_equal(x[:, 4:6], part.x[6:11, 5])
+
+
+CURRICULUM = dict(batch_size=8, lr=1e-2, curriculum=(2, 5), curriculum_epochs=2)
+
+
+def test_curriculum_trains_logs_window_lengths_and_resumes_bit_for_bit(tmp_path):
+    from mpnode import train
+
+    traj = tiny_linear(B=16, T=10)
+    straight = train.fit(fresh(), [traj], train.TrainConfig(epochs=6, **CURRICULUM), tmp_path / "a.h5")
+    assert straight.status == "completed" and np.isfinite(straight.best_val_loss)
+    log = train.read_log(train.log_path(tmp_path / "a.h5"))
+    assert [r["window"] for r in log[1:]] == [2, 2, 5, 5, 10, 10]
+    assert [r["stage"] for r in log[1:]] == [0, 0, 1, 1, 2, 2]
+    assert all(r["grad_norm"] > 0 and r["grad_norm_max"] >= r["grad_norm"] for r in log[1:])
+    # the curriculum changes training (short windows first) ...
+    plain = train.fit(fresh(), [traj], train.TrainConfig(epochs=2, batch_size=8, lr=1e-2))
+    assert not np.array_equal(plain.model.theta, train.fit(fresh(), [traj], train.TrainConfig(
+        epochs=2, **CURRICULUM)).model.theta)
+    # ... and a run stopped mid-curriculum (stage 1, epoch 3) resumes into the same run
+    train.fit(fresh(), [traj], train.TrainConfig(epochs=3, **CURRICULUM), tmp_path / "b.h5")
+    assert int(train.load_state(train.state_path(tmp_path / "b.h5"))["curriculum_stage"]) == 1
+    again = train.fit(None, [traj], train.TrainConfig(epochs=6), tmp_path / "b.h5", resume=True)
+    assert np.array_equal(again.model.theta, straight.model.theta)
+    strip = lambda rs: [{k: v for k, v in r.items() if k not in ("seconds", "elapsed")} for r in rs]  # noqa: E731
+    assert strip(train.read_log(train.log_path(tmp_path / "b.h5"))) == strip(log)
+
+
+def test_cli_horizon_curriculum_flags(tmp_path):
+    from test_train import tiny_file
+
+    data = tiny_file(tmp_path / "d.h5", B=12, T=10)
+    out = tmp_path / "m.h5"
+    res = CliRunner().invoke(main, ["train", data, "-o", str(out), "--epochs", "3", "--batch-size", "8",
+                                    "--horizon-curriculum", "3,full", "--curriculum-epochs", "2"])
+    assert res.exit_code == 0, res.output
+    assert "curriculum stage 2 of 2" in res.output
+    lines = [json.loads(line) for line in open(f"{out}.log.jsonl")]
+    assert [r["window"] for r in lines[1:]] == [3, 3, 10]
+    for bad in ("5,3", "0,full", "full,5", "x"):
+        res = CliRunner().invoke(main, ["train", data, "-o", str(out), "--horizon-curriculum", bad])
+        assert res.exit_code == 2 and "horizon-curriculum" in res.output, (bad, res.output)
