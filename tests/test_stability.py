@@ -252,3 +252,57 @@ def test_cli_horizon_curriculum_flags(tmp_path):
     for bad in ("5,3", "0,full", "full,5", "x"):
         res = CliRunner().invoke(main, ["train", data, "-o", str(out), "--horizon-curriculum", bad])
         assert res.exit_code == 2 and "horizon-curriculum" in res.output, (bad, res.output)
+
+
+# ---------------------------------------------------------------------------
+# A training run killed with SIGKILL
+# ---------------------------------------------------------------------------
+def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from mpnode import train
+    from mpnode.model import Model
+    from test_train import tiny_file
+
+    data = tiny_file(tmp_path / "d.h5", B=64, T=10)
+    out = tmp_path / "m.h5"
+    args = [data, "-o", str(out), "--batch-size", "4", "--lr", "1e-2", "--hidden", "8"]
+    proc = subprocess.Popen([sys.executable, "-c", "from mpnode.cli.main import main; main()", "train", *args,
+                             "--epochs", "100000"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    log, state = train.log_path(out), train.state_path(out)
+    try:
+        deadline = time.monotonic() + 120  # generous: a cold numba cache compiles first
+        while time.monotonic() < deadline and proc.poll() is None:
+            if os.path.exists(state) and os.path.exists(log) and open(log).read().count("\n") >= 5:
+                break
+            time.sleep(0.02)
+        time.sleep(0.05)  # into the next epoch
+        assert proc.poll() is None, "training ended before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+        assert proc.wait(timeout=10) == -signal.SIGKILL
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    m = Model.load(out)
+    assert np.all(np.isfinite(m.theta))
+    text = open(log).read()
+    assert text.endswith("\n")  # no torn last line
+
+    def strict(c):
+        raise ValueError(f"non-standard JSON constant {c}")
+
+    records = [json.loads(line, parse_constant=strict) for line in text.splitlines()]
+    assert [r["epoch"] for r in records] == list(range(len(records))) and len(records) >= 5
+    done = int(train.load_state(state)["epoch"])
+    assert 1 <= done <= records[-1]["epoch"]
+    res = CliRunner().invoke(main, ["train", *args, "--epochs", str(done + 2), "--resume"])
+    assert res.exit_code == 0, res.output
+    assert f"resuming at epoch {done}" in res.output
+    after = train.read_log(log)
+    assert [r["epoch"] for r in after] == list(range(done + 3))
+    assert np.all(np.isfinite(Model.load(out).theta))
