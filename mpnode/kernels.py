@@ -241,23 +241,22 @@ def stage_tile(stage, h, theta, z, zin, zout, acc, u, indptr, indices, inv_deg,
         for r in range(t1 - t0):
             for d in range(dx, dz):
                 K[r, d] = 0
-    one = z.dtype.type(1)
-    two = z.dtype.type(2)
-    if stage == 0:
-        c = h * z.dtype.type(0.5)
+    if stage == 3:
+        c = h * z.dtype.type(_RK_B[3])
+        for r in range(t1 - t0):
+            zi = t0 + r - zoff
+            for d in range(dz):
+                z[zi, d] += c * (acc[zi, d] + K[r, d])
+        return
+    c = h * z.dtype.type(_RK_C[stage + 1])
+    if stage == 0:  # acc = k1 (acc's old contents are not read: they may be anything)
         for r in range(t1 - t0):
             zi = t0 + r - zoff
             for d in range(dz):
                 acc[zi, d] = K[r, d]
                 zout[zi, d] = z[zi, d] + c * K[r, d]
-    elif stage == 3:
-        c = h / z.dtype.type(6)
-        for r in range(t1 - t0):
-            zi = t0 + r - zoff
-            for d in range(dz):
-                z[zi, d] += c * (acc[zi, d] + K[r, d])
-    else:
-        c = h * z.dtype.type(0.5) if stage == 1 else h * one
+    else:  # acc += 2 k2, 2 k3: with k1 and k4 that is 6 x the RK4 weights
+        two = z.dtype.type(2)
         for r in range(t1 - t0):
             zi = t0 + r - zoff
             for d in range(dz):
