@@ -10,7 +10,8 @@ s-rollout.  This is the *step-doubling* estimate used here.
 The rule of `choose_substeps` (``mpnode eval/simulate --substeps auto``):
 
 - probe: the first ``probe_steps`` output steps (default min(T, 20)) of up to
-  ``sample`` trajectories (default 32, spread evenly over the batch), rolled out in
+  ``sample`` trajectories (default 32, spread evenly over the batch; fewer for large
+  graphs, at most ~MAX_PROBE_NODES = 4096 nodes in all), rolled out in
   float64 (so the estimate measures truncation error, not float32 round-off);
 - error measure: ``max |x_s - x_2s| / x_std`` over the probed trajectories, steps,
   nodes and state dimensions, i.e. in the model's normalised units (x_std is the
@@ -40,13 +41,17 @@ DEFAULT_TOL = 1e-4
 DEFAULT_MAX_SUBSTEPS = 64
 DEFAULT_PROBE_STEPS = 20
 DEFAULT_SAMPLE = 32
+#: the probes roll out at most about this many nodes (fewer trajectories of large graphs)
+MAX_PROBE_NODES = 4096
 #: a step-doubling estimate above this (normalised units: the data's spread) means the
 #: rollout's first stretch is numerically meaningless -- the step is too large
 HUGE_ESTIMATE = 1.0
 
 
-def sample_indices(n, sample):
-    """Up to ``sample`` indices spread evenly over range(n) (all of them when n <= sample)."""
+def sample_indices(n, sample, n_nodes=1):
+    """Up to ``sample`` indices spread evenly over range(n) (all of them when n <= sample),
+    fewer when trajectories of ``n_nodes`` nodes would exceed MAX_PROBE_NODES (at least 1)."""
+    sample = max(1, min(sample, MAX_PROBE_NODES // max(1, n_nodes)))
     if n <= sample:
         return np.arange(n)
     return np.unique(np.linspace(0, n - 1, sample).round().astype(np.int64))
@@ -100,7 +105,7 @@ def choose_substeps(model, x0, graph, u=None, tol=DEFAULT_TOL, probe_steps=DEFAU
     if u is not None:
         k = min(k, np.asarray(u).shape[1])
     k = max(1, int(k))
-    idx = sample_indices(x0.shape[0], sample)
+    idx = sample_indices(x0.shape[0], sample, x0.shape[1])
     fine = model.copy(dtype=np.float64)
     xs, g = x0[idx], _pick(graph, idx)
     us = None if u is None else np.asarray(u)[idx, :k]
@@ -151,7 +156,7 @@ def stability_check(model, x0, graph, u, pred, bad, tol=DEFAULT_TOL, probe_steps
     horizon = pred.shape[1] - 1
     h = model.spec.dt / s
     k = max(1, min(probe_steps, horizon))
-    idx = sample_indices(x0.shape[0], sample)
+    idx = sample_indices(x0.shape[0], sample, x0.shape[1])
     fine = model.copy(dtype=np.float64)
     us = None if u is None else np.asarray(u)[idx, :k]
     a = _rollout(fine, s, x0[idx], _pick(graph, idx), us, k)
@@ -160,7 +165,7 @@ def stability_check(model, x0, graph, u, pred, bad, tol=DEFAULT_TOL, probe_steps
     blown = np.flatnonzero(bad.any(axis=1))
     stable = None
     if len(blown) and box is not None:
-        sel = blown[sample_indices(len(blown), sample)]
+        sel = blown[sample_indices(len(blown), sample, x0.shape[1])]
         gsel = _pick(graph, sel)
         usel = None if u is None else np.asarray(u)[sel]
         mid, r = box

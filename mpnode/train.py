@@ -569,6 +569,7 @@ def fit(model, datasets, config=None, output=None, *, sources=None, resume=False
     horizons = {p.x.shape[0] - 1 for p in train_parts}
     full_window = horizons.pop() if len(horizons) == 1 else None
     windowed = {}  # stage -> windowed training parts (only the current stage is kept)
+    announced = None
     try:
         while epoch < config.epochs:
             t0 = time.perf_counter()
@@ -576,11 +577,14 @@ def fit(model, datasets, config=None, output=None, *, sources=None, resume=False
             stop_now = False
             stage, window = curriculum_stage(config, epoch + 1)
             parts = train_parts
-            if window is not None:
+            if window is None:
+                windowed = {}
+            else:
                 if stage not in windowed:
                     windowed = {stage: [window_part(part, window) for part in train_parts]}
                 parts = windowed[stage]
-            if stage != curriculum_stage(config, epoch)[0] and epoch > 0 and config.curriculum:
+            if config.curriculum and stage != announced:
+                announced = stage
                 notify(f"epoch {epoch + 1}: curriculum stage {stage + 1} of {len(config.curriculum) + 1}: "
                        + (f"windows of {window} steps" if window is not None else "the full horizon"))
             for p, sel in epoch_batches(parts, config.batch_size, config.seed, epoch + 1):
