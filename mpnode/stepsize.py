@@ -17,8 +17,13 @@ The rule of `choose_substeps` (``mpnode eval/simulate --substeps auto``):
   nodes and state dimensions, i.e. in the model's normalised units (x_std is the
   training data's per-dimension standard deviation, stored in the model), so
   ``tol = 1e-4`` (the default) means "one ten-thousandth of the data's spread";
-- s = 1, 2, 4, ... 64 (``max_substeps``): the first s whose estimate is <= tol is
-  chosen.  If none is, the report says so (``reached: false``) and s = max_substeps.
+- s = 1, 2, 4, ... up to ``max_substeps`` (default 64): the first s whose estimate is
+  <= tol is chosen.  If none is, the report says so (``reached: false``) and s is the
+  largest power of two <= max_substeps.
+
+A float32 model's own rollout carries round-off of ~1e-6 of the state's size per step
+on top of the truncation error the float64 probe measures: tolerances much below 1e-5
+buy nothing for float32 models.
 
 The estimate is for the probed stretch only: over a long horizon a (non-chaotic)
 rollout's error grows roughly in proportion to the number of steps, and a chaotic
