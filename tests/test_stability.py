@@ -306,3 +306,14 @@ def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(t
     after = train.read_log(log)
     assert [r["epoch"] for r in after] == list(range(done + 3))
     assert np.all(np.isfinite(Model.load(out).theta))
+
+
+def test_read_log_tolerates_only_a_cut_last_line(tmp_path):
+    from mpnode import train
+
+    p = tmp_path / "m.h5.log.jsonl"
+    p.write_text('{"epoch": 0}\n{"epoch": 1}\n{"epo')
+    assert train.read_log(p) == [{"epoch": 0}, {"epoch": 1}]
+    p.write_text('{"epoch": 0}\n{"epo\n{"epoch": 2}\n')
+    with pytest.raises(ValueError):
+        train.read_log(p)
