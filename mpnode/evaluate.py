@@ -31,7 +31,7 @@ import numpy as np
 
 from . import stepsize
 from .data import Trajectories
-from .errors import InputError, NumericalError
+from .errors import NumericalError
 from .train import check_data
 
 HORIZON_THRESHOLDS = (0.1, 1.0)
