@@ -267,7 +267,13 @@ class _Part:
         self._graph_cache = {}
 
     def batch(self, sel):
-        """(x (T+1, b*N, dx), u (T, b*N, du) or None, graph) for local trajectory numbers ``sel``."""
+        """(x (T+1, b*N, dx), u (T, b*N, du) or None, graph) for local trajectory numbers ``sel``.
+
+        Trajectories are grouped by graph inside the batch (the loss is a sum, so order is
+        free): runs of copies of one small graph let the kernels aggregate densely.
+        """
+        if not self.single_graph:
+            sel = sel[np.argsort(self.gi[sel], kind="stable")]
         b = len(sel)
         t1, _, n, dx = self.x.shape
         x = np.take(self.x, sel, axis=1).reshape(t1, b * n, dx)
