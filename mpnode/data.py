@@ -166,13 +166,13 @@ def read_trajectories(path):
         f = h5py.File(source, "r")
     except FileNotFoundError:
         raise InputError(source, "file", "does not exist", "an existing trajectory file") from None
-    except OSError as e:
+    except (OSError, RuntimeError) as e:
         raise InputError(source, "file", f"cannot be opened as HDF5 ({_one_line(e)})",
                          "an HDF5 trajectory file (not truncated, not another format)") from None
     try:
         with f:
             traj = _read_open_file(f, source)
-    except OSError as e:  # damage that only shows once data is read
+    except _H5_DAMAGE as e:  # damage that only shows once data is read
         raise InputError(source, "file", f"cannot be read ({_one_line(e)})", "an intact HDF5 file") from None
     validate_trajectories(traj, source)
     traj.dt = float(traj.dt)
@@ -180,10 +180,15 @@ def read_trajectories(path):
     return traj
 
 
+#: what h5py raises for damaged bytes: OSError (unreadable blocks), RuntimeError (corrupt headers,
+#: e.g. "wrong version number in dataspace message"), KeyError (an object that cannot be opened)
+_H5_DAMAGE = (OSError, RuntimeError, KeyError)
+
+
 def _read_open_file(f, source):
     """Build a Trajectories from an open file, checking what only the file can get wrong."""
     fmt = _plain(f.attrs.get("format"))
-    if fmt != FORMAT_NAME:
+    if not isinstance(fmt, str) or fmt != FORMAT_NAME:  # an array attribute compares element-wise
         what = "is missing" if fmt is None else f"is {fmt!r}"
         raise InputError(source, "format", what,
                          f"the root attribute format = {FORMAT_NAME!r}, as mpnode trajectory files have")
@@ -261,7 +266,10 @@ def _member(f, name, kind, source):
 
     if name not in f:
         raise InputError(source, name, "is missing", f"a {kind} {name}")
-    obj = f[name]
+    try:
+        obj = f[name]
+    except KeyError:  # a soft or external link to nothing
+        raise InputError(source, name, "is a link to an object that does not exist", f"a {kind} {name}") from None
     if not isinstance(obj, h5py.Group if kind == "group" else h5py.Dataset):
         raise InputError(source, name, f"is not a {kind}", f"a {kind} {name}")
     return obj

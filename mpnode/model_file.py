@@ -7,6 +7,8 @@ from .errors import InputError
 from .model import FORMAT, FORMAT_VERSION, Model
 
 _INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "zero_messages", "self_messages")
+#: what h5py raises for damaged bytes: OSError, RuntimeError (corrupt headers), KeyError (unopenable objects)
+_H5_DAMAGE = (OSError, RuntimeError, KeyError)
 _SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator"}
 
 
@@ -26,50 +28,57 @@ def read_model(path):
         f = h5py.File(path, "r")
     except FileNotFoundError:
         raise InputError(path, "file", "does not exist", "a model file written by `mpnode train`") from None
-    except OSError as e:
+    except (OSError, RuntimeError) as e:
         raise InputError(path, "file", f"is not a readable HDF5 file ({e})", "an mpnode model file") from None
-    with f:
-        a = {k: _plain(v) for k, v in f.attrs.items()}
+    try:
+        with f:
+            a = {k: _plain(v) for k, v in f.attrs.items()}
 
-        def need(name, check, expected):
-            if name not in a:
-                raise InputError(path, name, "root attribute is missing", expected)
-            if not check(a[name]):
-                raise InputError(path, name, f"is {a[name]!r}", expected)
-            return a[name]
+            def need(name, check, expected):
+                if name not in a:
+                    raise InputError(path, name, "root attribute is missing", expected)
+                if not check(a[name]):
+                    raise InputError(path, name, f"is {a[name]!r}", expected)
+                return a[name]
 
-        need("format", lambda v: v == FORMAT, f"'{FORMAT}'")
-        need("format_version", lambda v: isinstance(v, int) and v == FORMAT_VERSION, str(FORMAT_VERSION))
-        need("activation", lambda v: v == "tanh", "'tanh'")
-        need("integrator", lambda v: v == "rk4", "'rk4' (classic 4-stage)")
-        is_int = lambda v: isinstance(v, int) and not isinstance(v, bool)  # noqa: E731
-        dx = need("state_dim", lambda v: is_int(v) and v >= 1, "an integer >= 1")
-        du = need("control_dim", lambda v: is_int(v) and v >= 0, "an integer >= 0")
-        dm = need("message_dim", lambda v: is_int(v) and v >= 0, "an integer >= 0")
-        hidden = need("hidden", lambda v: is_int(v) and v >= 1, "an integer >= 1")
-        substeps = need("substeps", lambda v: is_int(v) and v >= 1, "an integer >= 1")
-        zero = need("zero_messages", lambda v: v in (0, 1), "0 or 1")
-        self_msg = need("self_messages", lambda v: v in (0, 1), "0 or 1")
-        dt = need("dt", lambda v: isinstance(v, (int, float)) and np.isfinite(v) and v > 0, "a number > 0")
+            need("format", lambda v: isinstance(v, str) and v == FORMAT, f"'{FORMAT}'")
+            need("format_version", lambda v: isinstance(v, int) and v == FORMAT_VERSION, str(FORMAT_VERSION))
+            need("activation", lambda v: isinstance(v, str) and v == "tanh", "'tanh'")
+            need("integrator", lambda v: isinstance(v, str) and v == "rk4", "'rk4' (classic 4-stage)")
+            is_int = lambda v: isinstance(v, int) and not isinstance(v, bool)  # noqa: E731
+            dx = need("state_dim", lambda v: is_int(v) and v >= 1, "an integer >= 1")
+            du = need("control_dim", lambda v: is_int(v) and v >= 0, "an integer >= 0")
+            dm = need("message_dim", lambda v: is_int(v) and v >= 0, "an integer >= 0")
+            hidden = need("hidden", lambda v: is_int(v) and v >= 1, "an integer >= 1")
+            substeps = need("substeps", lambda v: is_int(v) and v >= 1, "an integer >= 1")
+            zero = need("zero_messages", lambda v: isinstance(v, (int, float)) and v in (0, 1), "0 or 1")
+            self_msg = need("self_messages", lambda v: isinstance(v, (int, float)) and v in (0, 1), "0 or 1")
+            dt = need("dt", lambda v: isinstance(v, (int, float)) and np.isfinite(v) and v > 0, "a number > 0")
 
-        shapes = mlp.param_shapes(dx, du, dm, hidden)
-        params, dtype = {}, None
-        for name in mlp.PARAM_NAMES:
-            arr = _dataset(f, path, f"params/{name}", shapes[name])
-            if dtype is None:
-                dtype = arr.dtype
-            elif arr.dtype != dtype:
-                raise InputError(path, f"params/{name}", f"has dtype {arr.dtype} but params/W1 has {dtype}",
-                                 "one float dtype for all parameters")
-            params[name] = arr
-        norm = {"x_mean": _dataset(f, path, "norm/x_mean", (dx,)), "x_std": _dataset(f, path, "norm/x_std", (dx,))}
-        if du:
-            norm["u_mean"] = _dataset(f, path, "norm/u_mean", (du,))
-            norm["u_std"] = _dataset(f, path, "norm/u_std", (du,))
-        for key in ("x_std", "u_std"):
-            if key in norm and np.any(norm[key] <= 0):
-                raise InputError(path, f"norm/{key}", "has a value <= 0", "standard deviations > 0")
-        extra = {k: v for k, v in a.items() if k not in _SPEC_ATTRS}
+            shapes = mlp.param_shapes(dx, du, dm, hidden)
+            params, dtype = {}, None
+            for name in mlp.PARAM_NAMES:
+                arr = _dataset(f, path, f"params/{name}", shapes[name])
+                if dtype is None:
+                    dtype = arr.dtype
+                elif arr.dtype != dtype:
+                    raise InputError(path, f"params/{name}", f"has dtype {arr.dtype} but params/W1 has {dtype}",
+                                     "one float dtype for all parameters")
+                params[name] = arr
+            norm = {"x_mean": _dataset(f, path, "norm/x_mean", (dx,)), "x_std": _dataset(f, path, "norm/x_std", (dx,))}
+            if du:
+                norm["u_mean"] = _dataset(f, path, "norm/u_mean", (du,))
+                norm["u_std"] = _dataset(f, path, "norm/u_std", (du,))
+            for key in ("x_std", "u_std"):
+                if key in norm and np.any(norm[key] <= 0):
+                    raise InputError(path, f"norm/{key}", "has a value <= 0", "standard deviations > 0")
+            extra = {k: v for k, v in a.items() if k not in _SPEC_ATTRS}
+
+    except InputError:
+        raise
+    except _H5_DAMAGE as e:  # damaged bytes that h5py only notices while reading
+        raise InputError(path, "file", f"cannot be read ({' '.join(str(e).split())})",
+                         "an intact mpnode model file") from None
 
     spec = integrate.FieldSpec(dx, du, dm, hidden, float(dt), substeps, bool(zero), bool(self_msg))
     return Model(mlp.join(params, dtype=dtype), spec, norm["x_mean"], norm["x_std"],
