@@ -28,6 +28,7 @@ anything else is a TOML file with this schema (example: scenes/example_gene_ring
 
 Unknown keys, wrong types and missing keys raise InputError(file, key, problem, expected).
 """
+import math
 import os
 import tomllib
 from dataclasses import dataclass, field
@@ -130,8 +131,17 @@ def check_scene(scene, source):
         if value < 1:
             raise InputError(source, key, f"is {value}", "an integer >= 1")
     for key, value in (("dt", scene.dt), ("rtol", scene.rtol), ("atol", scene.atol)):
-        if not value > 0:
-            raise InputError(source, key, f"is {value}", "a number > 0")
+        if not (value > 0 and math.isfinite(value)):
+            raise InputError(source, key, f"is {value}", "a finite number > 0")
+    if not math.isfinite(scene.dt * scene.horizon):
+        raise InputError(source, "dt", f"times horizon {scene.horizon} overflows", "a finite duration")
+    for key, value in (("seed", scene.seed), ("system_seed", scene.system_seed)):
+        if value < 0:  # numpy's SeedSequence takes non-negative integers only
+            raise InputError(source, key, f"is {value}", "an integer >= 0")
+    for key, value in scene.params.items():
+        if not math.isfinite(value):
+            raise InputError(source, f"params.{key}", f"is {value}", "a finite number")
+    _check_graph_ranges(scene.graph, source)
     if scene.integrator not in INTEGRATORS:
         raise InputError(source, "integrator", f"unknown method {scene.integrator!r}",
                          "one of " + ", ".join(INTEGRATORS))
@@ -140,6 +150,19 @@ def check_scene(scene, source):
     elif scene.initial not in system.samplers:  # closed-loop systems draw their own initial states
         raise InputError(source, "initial", f"initial state {scene.initial!r} is not defined for {system.name}",
                          "one of " + ", ".join(system.samplers))
+
+
+def _check_graph_ranges(spec, source):
+    """The random builders' arguments in the ranges networkx builds sensible graphs for."""
+    n, args = spec.n_nodes, spec.args
+    ranges = {"p": (0.0, 1.0, "a probability in [0, 1]"),
+              "m": ((1, n - 1, f"an integer in 1..{n - 1} (N - 1)") if spec.builder == "barabasi_albert"
+                    else (0, n * (n - 1) // 2, f"an integer in 0..{n * (n - 1) // 2} (all pairs)")),
+              "k": (0, n, f"an integer in 0..{n} (N)")}
+    for name, value in args.items():
+        lo, hi, expected = ranges[name]
+        if not lo <= value <= hi:  # NaN fails too
+            raise InputError(source, f"graph.{name}", f"is {value} for {spec.builder} on {n} nodes", expected)
 
 
 # ---- TOML -----------------------------------------------------------------------------
@@ -162,6 +185,10 @@ def read_scene(path):
         raise InputError(source, "file", "does not exist", "a TOML scene file") from None
     except tomllib.TOMLDecodeError as e:
         raise InputError(source, "TOML", str(e), "valid TOML") from None
+    except UnicodeDecodeError as e:
+        raise InputError(source, "TOML", f"is not UTF-8 text ({e.reason} at byte {e.start})", "valid TOML") from None
+    except OSError as e:  # a folder, no permission, ...
+        raise InputError(source, "file", f"cannot be read ({e.strerror or e})", "a readable TOML scene file") from None
     _check_keys(doc, _TOP, source, "", required=("system", "graph"))
     g = doc["graph"]
     _check_keys(g, _GRAPH, source, "graph.", required=("builder", "nodes"))
