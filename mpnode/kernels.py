@@ -547,6 +547,20 @@ def loss_grad_blocks(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindptr,
 
 
 @njit(parallel=True, **_JIT)
+def rk4_substep_tiles(h, theta, z, za, zb, acc, u, indptr, indices, inv_deg, dx, self_msg, zero_msg, Vc, H1c, H2c):
+    """One RK4 step of a whole graph, each stage a parallel loop over tiles; stage s's MLP
+    inputs and activations go to Vc/H1c/H2c[s] (all M rows) for the adjoint."""
+    M, dz = z.shape
+    for stage in range(4):
+        zin, zout = _stage_arrays(stage, z, za, zb)
+        for k in prange((M + TILE - 1) // TILE):
+            t0 = k * TILE
+            t1 = min(M, t0 + TILE)
+            stage_tile(stage, h, theta, z, zin, zout, acc, u, indptr, indices, inv_deg, t0, t1, 0, dx,
+                       self_msg, zero_msg, za[:0, :dz - dx], Vc[stage, t0:t1], H1c[stage, t0:t1], H2c[stage, t0:t1])
+
+
+@njit(parallel=True, **_JIT)
 def loss_grad_stagewise(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindptr, tindices,
                         substeps, h, self_msg, zero_msg, loss_kind, scale, Zs, gthetas, losses, gx0):
     """As loss_grad_blocks for one large graph: every phase is a parallel loop over tiles.
@@ -567,14 +581,8 @@ def loss_grad_stagewise(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindp
     gthetas[:] = 0
     for t in range(T):
         for s in range(substeps):
-            for stage in range(4):
-                zin, zout = _stage_arrays(stage, z, za, zb)
-                for k in prange(ntiles):
-                    t0 = k * TILE
-                    t1 = min(M, t0 + TILE)
-                    stage_tile(stage, h, theta, z, zin, zout, acc, U[t], indptr, indices, inv_deg,
-                               t0, t1, 0, dx, self_msg, zero_msg, za[:0, :dm], Vc[stage, t0:t1],
-                               H1c[stage, t0:t1], H2c[stage, t0:t1])
+            rk4_substep_tiles(h, theta, z, za, zb, acc, U[t], indptr, indices, inv_deg, dx, self_msg, zero_msg,
+                              Vc, H1c, H2c)
             Zs[t * substeps + s + 1] = z
         for k in prange(ntiles):
             t0 = k * TILE
@@ -592,14 +600,8 @@ def loss_grad_stagewise(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindp
             loss_tile(loss_kind, Zs[(t + 1) * substeps, t0:t1], X[t + 1, t0:t1], scale, gz[t0:t1])
         for s in range(substeps - 1, -1, -1):
             z[:] = Zs[t * substeps + s]
-            for stage in range(4):
-                zin, zout = _stage_arrays(stage, z, za, zb)
-                for k in prange(ntiles):
-                    t0 = k * TILE
-                    t1 = min(M, t0 + TILE)
-                    stage_tile(stage, h, theta, z, zin, zout, acc, U[t], indptr, indices, inv_deg,
-                               t0, t1, 0, dx, self_msg, zero_msg, za[:0, :dm], Vc[stage, t0:t1],
-                               H1c[stage, t0:t1], H2c[stage, t0:t1])
+            rk4_substep_tiles(h, theta, z, za, zb, acc, U[t], indptr, indices, inv_deg, dx, self_msg, zero_msg,
+                              Vc, H1c, H2c)
             gnew[:] = gz
             gnext = gbuf0
             gin = gbuf1
