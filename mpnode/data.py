@@ -166,12 +166,14 @@ def read_trajectories(path):
         f = h5py.File(source, "r")
     except FileNotFoundError:
         raise InputError(source, "file", "does not exist", "an existing trajectory file") from None
-    except (OSError, RuntimeError) as e:
+    except _H5_DAMAGE as e:
         raise InputError(source, "file", f"cannot be opened as HDF5 ({_one_line(e)})",
                          "an HDF5 trajectory file (not truncated, not another format)") from None
     try:
         with f:
             traj = _read_open_file(f, source)
+    except InputError:
+        raise
     except _H5_DAMAGE as e:  # damage that only shows once data is read
         raise InputError(source, "file", f"cannot be read ({_one_line(e)})", "an intact HDF5 file") from None
     validate_trajectories(traj, source)
@@ -181,8 +183,9 @@ def read_trajectories(path):
 
 
 #: what h5py raises for damaged bytes: OSError (unreadable blocks), RuntimeError (corrupt headers,
-#: e.g. "wrong version number in dataspace message"), KeyError (an object that cannot be opened)
-_H5_DAMAGE = (OSError, RuntimeError, KeyError)
+#: e.g. "wrong version number in dataspace message"), KeyError (an object that cannot be opened),
+#: TypeError/ValueError (damaged datatype messages)
+_H5_DAMAGE = (OSError, RuntimeError, KeyError, TypeError, ValueError)  # + "Unknown string encoding", ...
 
 
 def _read_open_file(f, source):

@@ -8,7 +8,7 @@ from .model import FORMAT, FORMAT_VERSION, Model
 
 _INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "zero_messages", "self_messages")
 #: what h5py raises for damaged bytes: OSError, RuntimeError (corrupt headers), KeyError (unopenable objects)
-_H5_DAMAGE = (OSError, RuntimeError, KeyError)
+_H5_DAMAGE = (OSError, RuntimeError, KeyError, TypeError, ValueError)  # + "Unknown string encoding", ...
 _SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator"}
 
 
@@ -28,7 +28,7 @@ def read_model(path):
         f = h5py.File(path, "r")
     except FileNotFoundError:
         raise InputError(path, "file", "does not exist", "a model file written by `mpnode train`") from None
-    except (OSError, RuntimeError) as e:
+    except _H5_DAMAGE as e:
         raise InputError(path, "file", f"is not a readable HDF5 file ({e})", "an mpnode model file") from None
     try:
         with f:
@@ -53,7 +53,8 @@ def read_model(path):
             substeps = need("substeps", lambda v: is_int(v) and v >= 1, "an integer >= 1")
             zero = need("zero_messages", lambda v: isinstance(v, (int, float)) and v in (0, 1), "0 or 1")
             self_msg = need("self_messages", lambda v: isinstance(v, (int, float)) and v in (0, 1), "0 or 1")
-            dt = need("dt", lambda v: isinstance(v, (int, float)) and np.isfinite(v) and v > 0, "a number > 0")
+            dt = need("dt", lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0,
+                      "a number > 0")
 
             shapes = mlp.param_shapes(dx, du, dm, hidden)
             params, dtype = {}, None
