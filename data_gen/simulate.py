@@ -115,11 +115,15 @@ def integrate(rhs, x0, n_steps, dt, method="DOP853", rtol=1e-9, atol=1e-9, guard
                         rtol=rtol, atol=atol, events=events)
     except _OverBudget:
         raise StiffnessDetected(f"{method} needed more than {max_nfev} right-hand-side evaluations") from None
+    except (ValueError, ArithmeticError) as e:  # e.g. Radau's LU of a Jacobian holding inf: the physics blew up
+        raise NumericalError(f"{method} failed: {e}") from None
+    reached = np.asarray(sol.t)  # a failed solve with t_eval may return an empty list
+    reached = float(reached[-1]) if reached.size else 0.0
     if watch and sol.status == -1:
-        raise StiffnessDetected(f"{method} gave up at t = {sol.t[-1]:g}: {sol.message}")
+        raise StiffnessDetected(f"{method} gave up before t = {reached:g} (the last saved time): {sol.message}")
     if sol.status != 0:
         why = "left the region where the system is defined" if sol.status == 1 else sol.message
-        raise NumericalError(f"solver stopped at t = {sol.t[-1] if sol.t.size else 0.0:g}: {why}")
+        raise NumericalError(f"solver stopped after t = {reached:g}: {why}")
     if not np.all(np.isfinite(sol.y)):
         raise NumericalError("non-finite state")
     if guard is not None and np.any(guard(None, sol.y) <= 0):
