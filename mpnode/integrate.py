@@ -273,7 +273,7 @@ def loss_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes_total=Non
     tgraph = plan.transposed
     args = (theta, spec.message_dim, spec.hidden, x, u, graph.indptr, graph.indices, plan.inv_deg,
             tgraph.indptr, tgraph.indices)
-    n_parts = len(plan.blocks) - 1 if plan.blocks is not None else -(-m // kernels.TILE)
+    n_parts = len(plan.blocks) - 1 if plan.blocks is not None else -(-m // kernels.STAGE_TILE)
     gthetas = np.empty((n_parts, theta.size), dtype=theta.dtype)
     losses = np.zeros(n_parts, dtype=np.float64)
     tail = (spec.substeps, h, spec.self_messages, spec.zero_messages, kind, scale, states, gthetas, losses, gx0)

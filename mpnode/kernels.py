@@ -23,7 +23,8 @@ import numpy as np
 from numba import njit, prange
 from numba.extending import overload
 
-TILE = 128
+TILE = 128  # rows per BLAS call inside a block (blocks hold a few hundred nodes)
+STAGE_TILE = 256  # rows per parallel task of the stagewise drivers (one big graph: fewer, larger tasks)
 # No nnan/ninf: a NaN must survive the arithmetic so that callers can detect it.
 FASTMATH = {"contract", "reassoc", "nsz", "arcp", "afn"}
 
@@ -444,7 +445,7 @@ def rollout_stagewise(theta, dm, hidden, x0, U, indptr, indices, inv_deg, subste
     dz = dx + dm
     din = dz + U.shape[2]
     T = out.shape[0] - 1
-    ntiles = (M + TILE - 1) // TILE
+    ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
     z = np.zeros((M, dz), x0.dtype)
     z[:, :dx] = x0
     za = np.empty_like(z)
@@ -456,8 +457,8 @@ def rollout_stagewise(theta, dm, hidden, x0, U, indptr, indices, inv_deg, subste
             for stage in range(4):
                 zin, zout = _stage_arrays(stage, z, za, zb)
                 for k in prange(ntiles):
-                    t0 = k * TILE
-                    t1 = min(M, t0 + TILE)
+                    t0 = k * STAGE_TILE
+                    t1 = min(M, t0 + STAGE_TILE)
                     V = np.empty((t1 - t0, din), x0.dtype)
                     H1 = np.empty((t1 - t0, hidden), x0.dtype)
                     H2 = np.empty((t1 - t0, hidden), x0.dtype)
@@ -553,9 +554,9 @@ def rk4_substep_tiles(h, theta, z, za, zb, acc, u, indptr, indices, inv_deg, dx,
     M, dz = z.shape
     for stage in range(4):
         zin, zout = _stage_arrays(stage, z, za, zb)
-        for k in prange((M + TILE - 1) // TILE):
-            t0 = k * TILE
-            t1 = min(M, t0 + TILE)
+        for k in prange((M + STAGE_TILE - 1) // STAGE_TILE):
+            t0 = k * STAGE_TILE
+            t1 = min(M, t0 + STAGE_TILE)
             stage_tile(stage, h, theta, z, zin, zout, acc, u, indptr, indices, inv_deg, t0, t1, 0, dx,
                        self_msg, zero_msg, za[:0, :dz - dx], Vc[stage, t0:t1], H1c[stage, t0:t1], H2c[stage, t0:t1])
 
@@ -572,7 +573,7 @@ def loss_grad_stagewise(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindp
     dz = dx + dm
     din = dz + U.shape[2]
     du = U.shape[2]
-    ntiles = (M + TILE - 1) // TILE
+    ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
     z, za, zb, acc, Vc, H1c, H2c = _scratch(M, dz, din, hidden, X)
     z[:, :dx] = X[0]
     Zs[0] = z
@@ -585,8 +586,8 @@ def loss_grad_stagewise(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindp
                               Vc, H1c, H2c)
             Zs[t * substeps + s + 1] = z
         for k in prange(ntiles):
-            t0 = k * TILE
-            t1 = min(M, t0 + TILE)
+            t0 = k * STAGE_TILE
+            t1 = min(M, t0 + STAGE_TILE)
             losses[k] += loss_tile(loss_kind, z[t0:t1], X[t + 1, t0:t1], scale, none)
     gz = np.zeros((M, dz), X.dtype)
     gnew = np.empty_like(gz)
@@ -595,8 +596,8 @@ def loss_grad_stagewise(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindp
     gmp = np.empty((M, dm), X.dtype)
     for t in range(T - 1, -1, -1):
         for k in prange(ntiles):
-            t0 = k * TILE
-            t1 = min(M, t0 + TILE)
+            t0 = k * STAGE_TILE
+            t1 = min(M, t0 + STAGE_TILE)
             loss_tile(loss_kind, Zs[(t + 1) * substeps, t0:t1], X[t + 1, t0:t1], scale, gz[t0:t1])
         for s in range(substeps - 1, -1, -1):
             z[:] = Zs[t * substeps + s]
@@ -607,13 +608,13 @@ def loss_grad_stagewise(theta, dm, hidden, X, U, indptr, indices, inv_deg, tindp
             gin = gbuf1
             for stage in range(3, -1, -1):
                 for k in prange(ntiles):
-                    t0 = k * TILE
-                    t1 = min(M, t0 + TILE)
+                    t0 = k * STAGE_TILE
+                    t1 = min(M, t0 + STAGE_TILE)
                     stage_vjp_tile(stage, h, theta, gz, gnext, gin, gmp, t0, t1, 0, dx, du, inv_deg, zero_msg,
                                    Vc[stage, t0:t1], H1c[stage, t0:t1], H2c[stage, t0:t1], gthetas[k])
                 for k in prange(ntiles):
-                    t0 = k * TILE
-                    t1 = min(M, t0 + TILE)
+                    t0 = k * STAGE_TILE
+                    t1 = min(M, t0 + STAGE_TILE)
                     transpose_tile(gin, gmp, tindptr, tindices, t0, t1, 0, dx, self_msg, zero_msg)
                     gnew[t0:t1] += gin[t0:t1]
                 gnext, gin = gin, gnext
