@@ -317,3 +317,37 @@ def test_read_log_tolerates_only_a_cut_last_line(tmp_path):
     p.write_text('{"epoch": 0}\n{"epo\n{"epoch": 2}\n')
     with pytest.raises(ValueError):
         train.read_log(p)
+
+
+def test_learned_lorenz_model_stays_bounded_over_a_long_horizon_and_eval_finds_its_horizon():
+    """A model trained on Lorenz3 (T = 50) rolled out to T = 400 stays finite and inside the bound
+    the architecture guarantees, and eval reports where it leaves the chaotic truth.
+
+    |dx_i/dt| <= sum_j |W3[j, i]| + |b3[i]| for a tanh MLP (|tanh| <= 1), and an RK4 step moves the
+    state by h times a weighted mean of four such values: the normalised state can move at most
+    t * bound by time t.  A NaN, an overflow or an unstable integrator would break it.
+    """
+    from mpnode.data_gen.scenes import load_scene
+    from mpnode.data_gen.simulate import generate
+    from mpnode.evaluate import evaluate
+    from mpnode.model import Model
+    from mpnode.train import TrainConfig, fit
+    import dataclasses
+
+    scene = load_scene("lorenz3")
+    train = generate(dataclasses.replace(scene, trajectories=32), workers=1)
+    longrun = generate(dataclasses.replace(scene, trajectories=8, horizon=400, seed=7), workers=1)
+    model = Model.create(3, message_dim=3, hidden=16, dt=scene.dt, self_messages=True, seed=0)
+    fit(model, [train], TrainConfig(epochs=40, batch_size=16, lr=3e-3))
+
+    result = evaluate(model, longrun, source="lorenz3-long", check_stability=False)
+    pred = result.predictions
+    assert pred.shape == longrun.x.shape and np.all(np.isfinite(pred))
+    W3, b3 = model.params["W3"], model.params["b3"]
+    bound = (np.abs(W3).sum(axis=0) + np.abs(b3))[:3]  # per normalised state dimension
+    moved = np.abs(model.normalize_x(pred) - model.normalize_x(pred[:, :1]))  # (B, T+1, N, dx)
+    t = np.arange(pred.shape[1])[None, :, None, None] * scene.dt
+    assert np.all(moved <= t * bound * (1 + 1e-5) + 1e-5)
+    # Chaos: the error crosses the thresholds early, and eval says at which step.
+    horizon = result.horizons["0.1"]
+    assert horizon["median_step"] is not None and 1 <= horizon["median_step"] < 400
