@@ -4,6 +4,8 @@ A `Model` is what a model file (../shared/spec/model-format.md) holds; `rollout`
 the data's own units (it z-scores inputs and undoes it on outputs), so a model file alone
 reproduces mpnode's simulation.
 """
+import functools
+
 import numpy as np
 
 from . import integrate, mlp
@@ -151,6 +153,13 @@ def loss_and_grad(model, x, graph, u=None, loss="huber"):
     return value, gtheta
 
 
+@functools.lru_cache(maxsize=16)
+def _copies(graph, n_batch):
+    """B copies of one graph, kept for reuse: the engine's per-graph plan is then built once
+    (about 1.6 ms for 128 copies of a 3-node graph, half of such a rollout)."""
+    return block_diagonal([graph] * n_batch)
+
+
 def to_time_major(a):
     """(B, T, N, d) -> contiguous (T, B*N, d): the kernels' layout."""
     b, t, n, d = a.shape
@@ -160,7 +169,7 @@ def to_time_major(a):
 def batch_graph(graph, n_batch):
     """One block-diagonal graph for a batch: B copies of ``graph`` or the B graphs given."""
     if isinstance(graph, Graph):
-        return graph if n_batch == 1 else block_diagonal([graph] * n_batch)
+        return graph if n_batch == 1 else _copies(graph, n_batch)
     graphs = list(graph)
     if len(graphs) != n_batch:
         raise InputError("graph", "graph", f"{len(graphs)} graphs for {n_batch} trajectories",
