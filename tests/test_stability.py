@@ -271,8 +271,11 @@ def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(t
     data = tiny_file(tmp_path / "d.h5", B=64, T=10)
     out = tmp_path / "m.h5"
     args = [data, "-o", str(out), "--batch-size", "4", "--lr", "1e-2", "--hidden", "8"]
+    # cwd: from the repository root, `python -c` would import the source mpnode/, which has no cli/
+    # (setup.cfg installs cli/ as mpnode.cli); the installed package is what a user runs.
     proc = subprocess.Popen([sys.executable, "-c", "from mpnode.cli.main import main; main()", "train", *args,
-                             "--epochs", "100000"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                             "--epochs", "100000"], stdout=subprocess.DEVNULL,
+                            stderr=open(tmp_path / "stderr.txt", "w"), cwd=tmp_path)
     log, state = train.log_path(out), train.state_path(out)
     try:
         deadline = time.monotonic() + 120  # generous: a cold numba cache compiles first
@@ -281,7 +284,7 @@ def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(t
                 break
             time.sleep(0.02)
         time.sleep(0.05)  # into the next epoch
-        assert proc.poll() is None, "training ended before it could be killed"
+        assert proc.poll() is None, f"training ended before it could be killed: {(tmp_path / 'stderr.txt').read_text()[-2000:]}"
         proc.send_signal(signal.SIGKILL)
         assert proc.wait(timeout=10) == -signal.SIGKILL
     finally:
