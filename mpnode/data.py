@@ -190,19 +190,19 @@ _H5_DAMAGE = (OSError, RuntimeError, KeyError, TypeError, ValueError)  # + "Unkn
 
 def _read_open_file(f, source):
     """Build a Trajectories from an open file, checking what only the file can get wrong."""
-    fmt = _plain(f.attrs.get("format"))
+    fmt = plain_attr(f.attrs.get("format"))
     if not isinstance(fmt, str) or fmt != FORMAT_NAME:  # an array attribute compares element-wise
         what = "is missing" if fmt is None else f"is {fmt!r}"
         raise InputError(source, "format", what,
                          f"the root attribute format = {FORMAT_NAME!r}, as mpnode trajectory files have")
-    version = _plain(f.attrs.get("format_version"))
+    version = plain_attr(f.attrs.get("format_version"))
     if isinstance(version, bool) or not isinstance(version, int) or version != FORMAT_VERSION:
         what = "is missing" if version is None else f"is {version!r}"
         raise InputError(source, "format_version", what, f"the integer {FORMAT_VERSION}, the version this reader knows")
     for name, meaning in (("dt", "the time step, a finite number > 0"), ("system", "a string naming the system")):
         if name not in f.attrs:
             raise InputError(source, name, "is missing", f"a root attribute {name}: {meaning}")
-    attrs = {k: _plain(v) for k, v in f.attrs.items() if k not in RESERVED_ATTRS}
+    attrs = {k: plain_attr(v) for k, v in f.attrs.items() if k not in RESERVED_ATTRS}
 
     x = _read_array(f, "x", source)
     u = _read_array(f, "u", source) if "u" in f else None
@@ -215,7 +215,7 @@ def _read_open_file(f, source):
         raise InputError(source, "graph_index", f"is missing, but the file has {len(graphs)} graphs",
                          "a dataset graph_index [B] naming the graph of each trajectory "
                          "(it may be omitted only when there is one graph)")
-    return Trajectories(x=x, graphs=graphs, dt=_plain(f.attrs["dt"]), system=_plain(f.attrs["system"]),
+    return Trajectories(x=x, graphs=graphs, dt=plain_attr(f.attrs["dt"]), system=plain_attr(f.attrs["system"]),
                         u=u, graph_index=graph_index, attrs=attrs,
                         params=_read_group(f, "params", source), aux=_read_group(f, "aux", source))
 
@@ -238,7 +238,7 @@ def _read_graphs(f, source):
         for name, a in ((f"{where}/indptr", indptr), (f"{where}/indices", indices)):
             if a.size and a.dtype.kind not in "iu":  # checked before Graph casts to int64
                 raise InputError(source, name, f"has dtype {a.dtype}", "an integer dtype")
-        flag = _plain(attrs.get("self_loops", 0))
+        flag = plain_attr(attrs.get("self_loops", 0))
         if not isinstance(flag, int) or flag not in (0, 1):  # bool is an int: True/False accepted
             raise InputError(source, where, f"has attribute self_loops = {flag!r}",
                              "self_loops = 1 (self-loops allowed), 0 or absent")
@@ -295,8 +295,9 @@ def _values(ds):
     return a
 
 
-def _plain(v):
-    """An attribute value as plain Python: numpy scalars -> int/float/bool, bytes -> str."""
+def plain_attr(v):
+    """An HDF5 attribute value as plain Python: numpy scalars -> int/float/bool, bytes -> str
+    (undecodable bytes stay bytes), string arrays -> lists; shared by the file readers."""
     if isinstance(v, str):
         return str(v)
     if isinstance(v, bytes):
@@ -305,7 +306,7 @@ def _plain(v):
         except UnicodeDecodeError:
             return bytes(v)
     if isinstance(v, np.ndarray):
-        return [_plain(e) for e in v.tolist()] if v.dtype.kind in "SOU" else v
+        return [plain_attr(e) for e in v.tolist()] if v.dtype.kind in "SOU" else v
     if isinstance(v, np.generic):
         return v.item()
     return v

@@ -3,6 +3,7 @@ import numpy as np
 
 from . import integrate, mlp
 from .atomic import atomic_path
+from .data import plain_attr
 from .errors import InputError
 from .model import FORMAT, FORMAT_VERSION, Model
 
@@ -10,14 +11,6 @@ _INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "
 #: what h5py raises for damaged bytes: OSError, RuntimeError (corrupt headers), KeyError (unopenable objects)
 _H5_DAMAGE = (OSError, RuntimeError, KeyError, TypeError, ValueError)  # + "Unknown string encoding", ...
 _SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator"}
-
-
-def _plain(v):
-    if isinstance(v, bytes):
-        return v.decode()
-    if isinstance(v, np.generic):
-        return v.item()
-    return v
 
 
 def read_model(path):
@@ -32,7 +25,7 @@ def read_model(path):
         raise InputError(path, "file", f"is not a readable HDF5 file ({e})", "an mpnode model file") from None
     try:
         with f:
-            a = {k: _plain(v) for k, v in f.attrs.items()}
+            a = {k: plain_attr(v) for k, v in f.attrs.items()}
 
             def need(name, check, expected):
                 if name not in a:

@@ -303,3 +303,15 @@ def test_import_mpnode_does_not_load_heavy_modules():
             "print(','.join(heavy))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "", f"import mpnode loaded: {out.stdout.strip()}"
+
+
+def test_undecodable_string_attribute_names_its_field(tmp_path):
+    """Bytes that are not UTF-8 in a model attribute are reported against that attribute."""
+    import h5py
+
+    path = tmp_path / "m.h5"
+    Model.create(3).save(path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["format"] = np.bytes_(b"\xff\xfe")
+    with pytest.raises(InputError, match=r"m\.h5: format: "):
+        Model.load(path)
