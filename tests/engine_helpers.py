@@ -96,8 +96,12 @@ def field_ref(spec, theta, z, u, A):
     return out
 
 
-def rollout_ref(spec, theta, x0, graph, u, n_steps):
-    """Classic RK4 at h = dt/substeps, u held over each dt; returns (n_steps+1, M, dx)."""
+def rollout_ref(spec, theta, x0, graph, u, n_steps, with_messages=False):
+    """Classic RK4 at h = dt/substeps, u held over each dt; returns x (n_steps+1, M, dx).
+
+    with_messages: return (x, m) with the messages m (n_steps+1, M, dm) too (the engine keeps
+    only x; benchmarks/paper plots m from here).
+    """
     theta = np.asarray(theta, dtype=np.float64)
     M, dx = x0.shape
     if u is None:
@@ -106,6 +110,7 @@ def rollout_ref(spec, theta, x0, graph, u, n_steps):
     z = np.concatenate([x0, np.zeros((M, spec.message_dim))], axis=1).astype(np.float64)
     h = spec.dt / spec.substeps
     out = np.empty((n_steps + 1, M, dx))
+    msgs = np.zeros((n_steps + 1, M, spec.message_dim))
     out[0] = x0
     for t in range(n_steps):
         F = lambda zz: field_ref(spec, theta, zz, u[t], A)  # noqa: E731
@@ -116,7 +121,8 @@ def rollout_ref(spec, theta, x0, graph, u, n_steps):
             k4 = F(z + h * k3)
             z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         out[t + 1] = z[:, :dx]
-    return out
+        msgs[t + 1] = z[:, dx:]
+    return (out, msgs) if with_messages else out
 
 
 def loss_ref(pred, target, kind, n_nodes):

@@ -1,0 +1,466 @@
+"""What every experiment of the paper suite shares: modes, cached data, training runs, evaluation.
+
+An experiment module (exp_*.py) declares
+
+- ``NAME``, ``TITLE``;
+- ``runs(mode)``: the training runs it needs (`RunSpec`; a run another experiment also
+  declares is trained once -- same name, same settings);
+- ``analyse(ctx)``: evaluates the trained models, draws its figures and returns its
+  section of RESULTS.md (markdown), and the numbers behind it (a dict, saved as JSON).
+
+`main` trains the runs of the chosen experiments on a pool of processes (one numba thread
+each: two single-threaded trainings use the 2 cores better than one two-threaded one),
+runs the analyses in order, and assembles RESULTS.md from every section present.
+
+Everything is cached under OUT/work (data files, models, logs) and keyed by the settings
+that made it, so a rerun only redoes what changed (``--force``: everything).
+"""
+import argparse
+import concurrent.futures as cf
+import dataclasses
+import hashlib
+import json
+import math
+import multiprocessing
+import os
+import platform
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+#: the experiments, in the order of RESULTS.md
+EXPERIMENTS = ("exp_messages", "exp_topologies", "exp_more_nodes", "exp_finetune", "exp_message_size", "exp_speed")
+PAPER_EPOCHS = 4000
+
+
+# ---------------------------------------------------------------------------
+# Mode
+# ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Mode:
+    """quick: CI-sized smoke run (minutes); full: the figures of RESULTS.md (under an hour on 2 cores)."""
+
+    quick: bool
+
+    def pick(self, full, quick):
+        return quick if self.quick else full
+
+    @property
+    def name(self):
+        return "quick" if self.quick else "full"
+
+
+# ---------------------------------------------------------------------------
+# Data
+# ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DataSpec:
+    """A generated trajectory file: a built-in scene with B trajectories from ``seed``.
+
+    graph_seeds: build the scene's random graphs with these networkx seeds instead (fresh,
+    unseen topologies).  Trajectory b depends only on (seed, b), so the first 50 of a
+    500-trajectory file are the 50-trajectory file.
+    """
+
+    scene: str
+    trajectories: int
+    seed: int
+    graph_seeds: tuple = None
+
+    @property
+    def key(self):
+        g = "" if self.graph_seeds is None else "_g" + "-".join(map(str, self.graph_seeds))
+        return f"{self.scene}_B{self.trajectories}_s{self.seed}{g}"
+
+    def describe(self):
+        g = "" if self.graph_seeds is None else f", graph seeds {list(self.graph_seeds)}"
+        return f"{self.scene} (B={self.trajectories}, seed {self.seed}{g})"
+
+
+def data_path(work, spec):
+    return Path(work) / "data" / f"{spec.key}.h5"
+
+
+def make_data(work, spec, workers=1):
+    """Generate ``spec``'s file unless it is there; return its path."""
+    from mpnode.data import write_trajectories
+    from mpnode.data_gen.scenes import load_scene
+    from mpnode.data_gen.simulate import generate
+
+    path = data_path(work, spec)
+    if path.exists():
+        return path
+    scene = dataclasses.replace(load_scene(spec.scene), trajectories=spec.trajectories, seed=spec.seed)
+    if spec.graph_seeds is not None:
+        scene = dataclasses.replace(scene, graph=dataclasses.replace(scene.graph, seeds=tuple(spec.graph_seeds)))
+    traj = generate(scene, workers=workers)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_trajectories(path, traj)  # atomic
+    return path
+
+
+def load_data(work, spec):
+    from mpnode.data import read_trajectories
+
+    return read_trajectories(make_data(work, spec))
+
+
+# ---------------------------------------------------------------------------
+# Training runs
+# ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RunSpec:
+    """One training run (scratch, or finetuning the model of run ``init_from``).
+
+    test / test_points: evaluate the best-validation model on ``test`` at ``test_points``
+    evenly spaced epochs (training resumes between them) -- the test-error curve of Fig. 5.
+    """
+
+    name: str
+    train: tuple
+    epochs: int
+    message_dim: int = 3
+    hidden: int = 32
+    zero_messages: bool = False
+    curriculum: tuple = ()
+    curriculum_epochs: int = 100
+    init_from: str = None
+    test: DataSpec = None
+    test_points: int = 0
+    seed: int = 0
+
+    @property
+    def key(self):
+        return hashlib.sha1(json.dumps(dataclasses.asdict(self), sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def run_dir(work, name):
+    return Path(work) / "runs" / name
+
+
+def load_result(work, name):
+    """The result.json of a finished run (dict), or None."""
+    p = run_dir(work, name) / "result.json"
+    return json.loads(p.read_text()) if p.exists() else None
+
+
+def load_model(work, name):
+    from mpnode.model import Model
+
+    return Model.load(run_dir(work, name) / "model.h5")
+
+
+def train_run(spec, work, verbose=True):
+    """Train ``spec`` and write runs/NAME/{model.h5, model.h5.log.jsonl, result.json}; return the result."""
+    from mpnode.evaluate import evaluate
+    from mpnode.model import Model
+    from mpnode.train import TrainConfig, fit, read_log, log_path
+
+    out = run_dir(work, spec.name)
+    out.mkdir(parents=True, exist_ok=True)
+    model_file = out / "model.h5"
+    for p in (model_file, Path(log_path(model_file)), Path(str(model_file) + ".state"), out / "result.json"):
+        p.unlink(missing_ok=True)
+    datasets = [load_data(work, d) for d in spec.train]
+    test = load_data(work, spec.test) if spec.test is not None else None
+    first = datasets[0]
+    if spec.init_from:
+        model = load_model(work, spec.init_from)
+        norm = "keep"
+    else:
+        model = Model.create(first.state_dim, first.control_dim, spec.message_dim, spec.hidden, first.dt,
+                             zero_messages=spec.zero_messages, seed=spec.seed)
+        norm = "fit"
+    config = TrainConfig(epochs=spec.epochs, seed=spec.seed, norm=norm, curriculum=tuple(spec.curriculum),
+                         curriculum_epochs=spec.curriculum_epochs)
+    stops = [spec.epochs]
+    if spec.test_points:
+        stops = sorted({int(round(spec.epochs * k / spec.test_points)) for k in range(1, spec.test_points + 1)})
+    curve = []
+    if test is not None:
+        curve.append([0, evaluate(model, test, check_stability=False).nmse])
+    t0 = time.perf_counter()
+    mark = {"next": 0.0}
+
+    def progress(rec):
+        if verbose and rec["epoch"] >= mark["next"] * spec.epochs:
+            mark["next"] += 0.25
+            print(f"    {spec.name}: epoch {rec['epoch']}/{spec.epochs}, val loss {rec['val_loss']:.4g}, "
+                  f"{time.perf_counter() - t0:.0f} s", flush=True)
+
+    result = None
+    for i, stop in enumerate(stops):
+        result = fit(model if i == 0 else None, datasets, dataclasses.replace(config, epochs=stop), model_file,
+                     resume=i > 0, progress=progress)
+        if test is not None:
+            curve.append([result.epoch, evaluate(result.model, test, check_stability=False).nmse])
+        if result.status != "completed":
+            break
+    history = read_log(log_path(model_file))
+    res = {"name": spec.name, "key": spec.key, "spec": dataclasses.asdict(spec),
+           "train_data": [d.describe() for d in spec.train],
+           "train_trajectories": int(sum(d.n_trajectories for d in datasets)),
+           "status": result.status, "message": result.message, "epochs": result.epoch,
+           "best_epoch": result.best_epoch, "best_val_loss": result.best_val_loss,
+           "seconds": time.perf_counter() - t0,
+           "history": [{k: r.get(k) for k in ("epoch", "train_loss", "val_loss", "window", "lr")} for r in history],
+           "test_curve": curve}
+    tmp = out / "result.json.tmp"
+    tmp.write_text(json.dumps(res, default=_json_default))
+    os.replace(tmp, out / "result.json")
+    return res
+
+
+def _json_default(v):
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return str(v)
+
+
+def _worker_init():
+    # before numba is imported in this process: one thread per training, two trainings at once
+    os.environ["NUMBA_NUM_THREADS"] = "1"
+
+
+def _train_in_worker(spec, work):
+    return train_run(spec, work)
+
+
+def ensure_runs(specs, work, jobs=2, force=False):
+    """Train every run of ``specs`` whose cached result is missing or was made with other settings."""
+    by_name = {}
+    for s in specs:
+        if s.name in by_name and by_name[s.name] != s:
+            raise ValueError(f"two experiments declare run {s.name!r} with different settings")
+        by_name[s.name] = s
+    todo = {n: s for n, s in by_name.items() if force or (load_result(work, n) or {}).get("key") != s.key}
+    for s in todo.values():
+        if s.init_from and s.init_from not in by_name:
+            raise ValueError(f"run {s.name} starts from {s.init_from!r}, which no experiment declares")
+    if not todo:
+        return
+    print(f"training {len(todo)} run(s) ({jobs} at a time): {', '.join(todo)}", flush=True)
+    done_names = set(by_name) - set(todo)
+    started = time.perf_counter()
+    pool = cf.ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
+                                  initializer=_worker_init) if jobs > 1 else None
+    running = {}
+    try:
+        while todo or running:
+            ready = [s for s in todo.values() if not s.init_from or s.init_from in done_names]
+            # runs others start from first, then the longest (epochs x trajectories as a rough cost),
+            # so the pool does not end on one long run
+            parents = {t.init_from for t in todo.values()}
+            ready.sort(key=lambda s: (s.name not in parents, -s.epochs * sum(d.trajectories for d in s.train)))
+            for s in ready:
+                if pool is None:
+                    print(f"  start {s.name}", flush=True)
+                    _report(train_run(s, work), started, len(done_names) + 1, len(by_name))
+                    done_names.add(s.name)
+                    del todo[s.name]
+                elif len(running) < jobs:
+                    print(f"  start {s.name}", flush=True)
+                    running[pool.submit(_train_in_worker, s, work)] = s
+                    del todo[s.name]
+            if pool is None:
+                continue
+            if not running:
+                raise RuntimeError("runs wait on runs that cannot start: " + ", ".join(todo))
+            finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+            for fut in finished:
+                s = running.pop(fut)
+                res = fut.result()
+                done_names.add(s.name)
+                _report(res, started, len(done_names), len(by_name))
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+
+
+def _report(res, started, k, n):
+    print(f"  [{k}/{n}] {res['name']}: {res['status']}, {res['epochs']} epochs, best val loss "
+          f"{res['best_val_loss']:.4g} (epoch {res['best_epoch']}), {res['seconds']:.0f} s "
+          f"[{time.perf_counter() - started:.0f} s in all]", flush=True)
+
+
+# ---------------------------------------------------------------------------
+# Analysis context and helpers
+# ---------------------------------------------------------------------------
+@dataclass
+class Context:
+    mode: Mode
+    out: Path
+    work: Path
+    figures: Path
+    runs: dict = field(default_factory=dict)  # name -> RunSpec
+
+    def result(self, name):
+        return load_result(self.work, name)
+
+    def model(self, name):
+        return load_model(self.work, name)
+
+    def data(self, spec):
+        return load_data(self.work, spec)
+
+    def figure(self, fig, name):
+        """Save a matplotlib figure as figures/NAME.png; returns the markdown link."""
+        import matplotlib.pyplot as plt
+
+        self.figures.mkdir(parents=True, exist_ok=True)
+        tmp = self.figures / f".{name}.tmp.png"
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+        os.replace(tmp, self.figures / f"{name}.png")
+        plt.close(fig)
+        return f"![{name}](figures/{name}.png)"
+
+
+def pyplot():
+    """matplotlib.pyplot on the Agg backend; a clear message when the plot extra is missing."""
+    try:
+        import matplotlib
+    except ImportError:
+        sys.exit("the paper suite draws figures with matplotlib: pip install '.[plot]'")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def evaluate_nmse(model, traj, substeps=None):
+    """The evaluation of `mpnode eval` (EvalResult): nMSE per step and over steps 1..T."""
+    from mpnode.evaluate import evaluate
+
+    return evaluate(model, traj, substeps=substeps, check_stability=False)
+
+
+def zscore_mse(model, traj, pred):
+    """Mean squared error in the model's own z-scored units (the seed code's normalisation), steps 1..T."""
+    x = np.asarray(traj.x, dtype=np.float64)
+    e = (np.asarray(pred, dtype=np.float64)[:, 1:] - x[:, 1:]) / model.x_std
+    return float(np.mean(e * e))
+
+
+def table(headers, rows):
+    """A markdown table; floats are shown with 3 significant digits."""
+    def cell(v):
+        if isinstance(v, float):
+            return "inf" if math.isinf(v) else f"{v:.3g}"
+        return str(v)
+
+    lines = ["| " + " | ".join(headers) + " |", "| " + " | ".join("---" for _ in headers) + " |"]
+    lines += ["| " + " | ".join(cell(v) for v in r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def curve(res, key):
+    """(epochs, values) of a logged quantity of a run (None entries dropped)."""
+    h = [r for r in res["history"] if r.get(key) is not None]
+    return np.array([r["epoch"] for r in h]), np.array([r[key] for r in h], dtype=float)
+
+
+def flatness(res, key="val_loss", frac=0.2):
+    """Relative improvement of the best ``key`` over the last ``frac`` of the epochs (small: flattened)."""
+    e, v = curve(res, key)
+    if len(v) < 5:
+        return float("nan")
+    cut = e.max() * (1 - frac)
+    before, after = np.min(v[e <= cut]), np.min(v)
+    return float((before - after) / before) if before > 0 else float("nan")
+
+
+def run_line(res):
+    """Seeds, data size and epochs of a run, for the tables of RESULTS.md."""
+    s = res["spec"]
+    bits = [f"{res['train_trajectories']} trajectories ({', '.join(res['train_data'])})",
+            f"{res['epochs']} epochs" + (f" (curriculum {s['curriculum']} x {s['curriculum_epochs']})"
+                                         if s["curriculum"] else ""),
+            f"seed {s['seed']}", f"dm {s['message_dim']}" + (", zero messages" if s["zero_messages"] else ""),
+            f"{res['seconds'] / 60:.1f} min"]
+    if s["init_from"]:
+        bits.append(f"from {s['init_from']}")
+    return "; ".join(bits)
+
+
+# ---------------------------------------------------------------------------
+# Command line
+# ---------------------------------------------------------------------------
+def parse_args(argv, description):
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--quick", action="store_true", help="CI-sized smoke run (tiny data, a few epochs)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="where RESULTS.md, figures/ and work/ go (default: benchmarks/paper for the full "
+                        "run, benchmarks/paper/quick for --quick)")
+    p.add_argument("--jobs", type=int, default=2, help="trainings at once (each single-threaded; 1: in-process)")
+    p.add_argument("--force", action="store_true", help="retrain and regenerate even what is cached")
+    args = p.parse_args(argv)
+    if args.out is None:
+        args.out = HERE / "quick" if args.quick else HERE
+    return args
+
+
+def main(experiments, argv=None, description="MP-NODE paper suite"):
+    """Train the runs of ``experiments`` (module names), analyse them, write OUT/RESULTS.md."""
+    import importlib
+
+    args = parse_args(argv, description)
+    mode = Mode(args.quick)
+    out = args.out.resolve()
+    work = out / "work"
+    ctx = Context(mode, out, work, out / "figures")
+    modules = [importlib.import_module(name) for name in experiments]
+    t0 = time.perf_counter()
+    specs = [s for m in modules for s in m.runs(mode)]
+    ctx.runs = {s.name: s for s in specs}
+    needed = {d for s in specs for d in s.train} | {s.test for s in specs if s.test is not None}
+    needed |= {d for m in modules for d in getattr(m, "data", lambda mode: [])(mode)}
+    missing = [d for d in sorted(needed, key=lambda d: d.key) if args.force or not data_path(work, d).exists()]
+    if args.force:
+        for d in missing:
+            data_path(work, d).unlink(missing_ok=True)
+    for i, d in enumerate(missing, 1):
+        t = time.perf_counter()
+        make_data(work, d, workers=2)
+        print(f"data [{i}/{len(missing)}] {d.describe()}: {time.perf_counter() - t:.1f} s", flush=True)
+    ensure_runs(specs, work, jobs=args.jobs, force=args.force)
+    (out / "sections").mkdir(parents=True, exist_ok=True)
+    (out / "results").mkdir(parents=True, exist_ok=True)
+    for m in modules:
+        t = time.perf_counter()
+        print(f"analysing {m.NAME} ...", flush=True)
+        text, numbers = m.analyse(ctx)
+        _write(out / "sections" / f"{m.__name__}.md", f"## {m.TITLE}\n\n{text.strip()}\n")
+        _write(out / "results" / f"{m.NAME}.json", json.dumps(numbers, indent=1, default=_json_default))
+        print(f"  {m.NAME}: {time.perf_counter() - t:.0f} s", flush=True)
+    write_results(out, mode, argv if argv is not None else sys.argv[1:], time.perf_counter() - t0)
+    print(f"wrote {out / 'RESULTS.md'} ({(time.perf_counter() - t0) / 60:.1f} min)", flush=True)
+
+
+def _write(path, text):
+    tmp = path.with_name("." + path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write_results(out, mode, argv, seconds):
+    """RESULTS.md: how it was made, the hand-written reading (full run), then every section present."""
+    import numba
+
+    cmd = " ".join(["python benchmarks/paper/run_all.py", *argv]).strip()
+    head = [f"# MP-NODE paper results on mpnode ({mode.name} run)", "",
+            f"Made by `{cmd}` on {time.strftime('%Y-%m-%d')}; the last invocation took {seconds / 60:.1f} min "
+            f"(cached runs are not retrained). Machine: {platform.machine()}, {os.cpu_count()} CPUs, Python "
+            f"{platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}. Trainings ran "
+            "two at a time, one numba thread each. Numbers per experiment are in `results/*.json`.", ""]
+    reading = HERE / "reading.md"
+    if not mode.quick and reading.exists() and out == HERE:
+        head += [reading.read_text().strip(), ""]
+    sections = [out / "sections" / f"{name}.md" for name in EXPERIMENTS]
+    body = [p.read_text().strip() + "\n" for p in sections if p.exists()]
+    _write(out / "RESULTS.md", "\n".join(head) + "\n" + "\n".join(body))

@@ -1,0 +1,65 @@
+"""The paper suite's --quick mode end to end (benchmarks/paper): every experiment trains,
+analyses and reports, and the speed-against-error numbers behave as numerics say they must."""
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("matplotlib")
+
+SUITE = Path(__file__).resolve().parents[1] / "benchmarks" / "paper" / "run_all.py"
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("paper")
+    proc = subprocess.run([sys.executable, str(SUITE), "--quick", "--out", str(out)], cwd=out,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return out
+
+
+def test_results_has_every_section_and_figure(quick_run):
+    text = (quick_run / "RESULTS.md").read_text()
+    for title in ("1. Messages matter", "2. Zero-shot to unseen topologies", "3. Zero-shot to more nodes",
+                  "4. Fine-tuning", "5. Message size", "6. Speed against error"):
+        assert f"## {title}" in text
+    for fig in ("messages_loss", "messages_trajectories", "messages_norms", "finetune_curves", "message_size",
+                "speed_vs_error"):
+        png = quick_run / "figures" / f"{fig}.png"
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert f"figures/{fig}.png" in text
+
+
+def test_finetune_curves_start_from_the_source_model(quick_run):
+    numbers = json.loads((quick_run / "results" / "finetune.json").read_text())
+    assert set(numbers) == {"lorenz10_50", "lorenz10_100", "lorenz10_500", "gene64", "kuramoto_er"}
+    for case in numbers.values():
+        ft, sc = case["test_curves"]["finetune"], case["test_curves"]["scratch"]
+        assert [e for e, _ in ft] == [e for e, _ in sc] and ft[0][0] == 0 and len(ft) == 3
+        assert ft[0][1] == case["zero_shot_nmse"]  # epoch 0 of fine-tuning is the source model itself
+        assert ft[0][1] != sc[0][1]  # ... and scratch starts elsewhere
+        for who in ("finetune", "scratch"):
+            e = case[who]
+            assert math.isclose(e["product"], e["min_nmse"] * max(e["epoch"], 1))
+
+
+def test_speed_against_error_obeys_the_numerics(quick_run):
+    numbers = json.loads((quick_run / "results" / "speed.json").read_text())
+    assert len(numbers) == 4
+    for system, rows in numbers.items():
+        def errors(family, dtype="float64"):
+            return [r["nmse"] for r in rows if r["family"] == family and r["dtype"] == dtype]
+
+        # tighter tolerances and more RK4 substeps converge to the truth (down to round-off)
+        for fam in ("scipy DOP853", "scipy RK45", "RK4, true field"):
+            e = errors(fam)
+            assert e[-1] < 1e-10, (system, fam, e)
+            assert all(b <= a * 1.5 or b < 1e-16 for a, b in zip(e, e[1:])), (system, fam, e)
+        # the learned model: the same weights in float32 and float64 predict the same
+        e32, e64 = errors("MP-NODE, batch", "float32"), errors("MP-NODE, batch", "float64")
+        assert all(math.isclose(a, b, rel_tol=1e-2) for a, b in zip(e32, e64)), (system, e32, e64)
+        assert all(r["seconds_per_trajectory"] > 0 for r in rows)
