@@ -202,6 +202,8 @@ def train_run(spec, work, verbose=True):
             break
     history = read_log(log_path(model_file))
     res = {"name": spec.name, "key": spec.key, "spec": dataclasses.asdict(spec),
+           "init_key": (load_result(work, spec.init_from) or {}).get("key") if spec.init_from else None,
+           "train_seconds": result.seconds,
            "train_data": [d.describe() for d in spec.train],
            "train_trajectories": int(sum(d.n_trajectories for d in datasets)),
            "status": result.status, "message": result.message, "epochs": result.epoch,
@@ -239,10 +241,20 @@ def ensure_runs(specs, work, jobs=2, force=False):
         if s.name in by_name and by_name[s.name] != s:
             raise ValueError(f"two experiments declare run {s.name!r} with different settings")
         by_name[s.name] = s
-    todo = {n: s for n, s in by_name.items() if force or (load_result(work, n) or {}).get("key") != s.key}
-    for s in todo.values():
+    for s in by_name.values():
         if s.init_from and s.init_from not in by_name:
             raise ValueError(f"run {s.name} starts from {s.init_from!r}, which no experiment declares")
+    todo = {n: s for n, s in by_name.items() if force or (load_result(work, n) or {}).get("key") != s.key}
+    changed = True
+    while changed:  # a run fine-tuned from a model that is (re)trained, or was made from another one, is redone
+        changed = False
+        for n, s in by_name.items():
+            if n in todo or not s.init_from:
+                continue
+            parent_key = (load_result(work, s.init_from) or {}).get("key")
+            if s.init_from in todo or load_result(work, n).get("init_key") != parent_key:
+                todo[n] = s
+                changed = True
     if not todo:
         return
     print(f"training {len(todo)} run(s) ({jobs} at a time): {', '.join(todo)}", flush=True)
@@ -382,9 +394,11 @@ def run_line(res):
             f"{res['epochs']} epochs" + (f" (curriculum {s['curriculum']} x {s['curriculum_epochs']})"
                                          if s["curriculum"] else ""),
             f"seed {s['seed']}", f"dm {s['message_dim']}" + (", zero messages" if s["zero_messages"] else ""),
-            f"{res['seconds'] / 60:.1f} min"]
+            f"{res.get('train_seconds', res['seconds']) / 60:.1f} min"]
     if s["init_from"]:
         bits.append(f"from {s['init_from']}")
+    if res["status"] != "completed":
+        bits.append(f"**{res['status'].upper()}**: {res['message']}")
     return "; ".join(bits)
 
 
@@ -438,7 +452,7 @@ def main(experiments, argv=None, description="MP-NODE paper suite"):
         _write(out / "sections" / f"{m.__name__}.md", f"## {m.TITLE}\n\n{text.strip()}\n")
         _write(out / "results" / f"{m.NAME}.json", json.dumps(numbers, indent=1, default=_json_default))
         print(f"  {m.NAME}: {time.perf_counter() - t:.0f} s", flush=True)
-    write_results(out, mode, argv if argv is not None else sys.argv[1:], time.perf_counter() - t0)
+    write_results(out, mode, argv if argv is not None else sys.argv[1:], time.perf_counter() - t0, args.jobs)
     print(f"wrote {out / 'RESULTS.md'} ({(time.perf_counter() - t0) / 60:.1f} min)", flush=True)
 
 
@@ -448,7 +462,7 @@ def _write(path, text):
     os.replace(tmp, path)
 
 
-def write_results(out, mode, argv, seconds):
+def write_results(out, mode, argv, seconds, jobs):
     """RESULTS.md: how it was made, the hand-written reading (full run), then every section present."""
     import numba
 
@@ -456,8 +470,9 @@ def write_results(out, mode, argv, seconds):
     head = [f"# MP-NODE paper results on mpnode ({mode.name} run)", "",
             f"Made by `{cmd}` on {time.strftime('%Y-%m-%d')}; the last invocation took {seconds / 60:.1f} min "
             f"(cached runs are not retrained). Machine: {platform.machine()}, {os.cpu_count()} CPUs, Python "
-            f"{platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}. Trainings ran "
-            "two at a time, one numba thread each. Numbers per experiment are in `results/*.json`.", ""]
+            f"{platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}. "
+            + (f"Trainings ran {jobs} at a time, one numba thread each. " if jobs > 1 else "")
+            + "Numbers per experiment are in `results/*.json`.", ""]
     reading = HERE / "reading.md"
     if not mode.quick and reading.exists() and out == HERE:
         head += [reading.read_text().strip(), ""]

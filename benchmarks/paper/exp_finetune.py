@@ -28,7 +28,7 @@ LORENZ_SIZES = (50, 100, 500)
 
 
 def cases(mode):
-    """(label, target train data, test data, source run, epochs, scratch curriculum)."""
+    """(run-name pattern, label, target training data, test data, source run spec, epochs) per transfer."""
     out = []
     for n in LORENZ_SIZES:
         out.append((f"lorenz10_{{}}_{n}", f"Lorenz3 -> Lorenz10, {n} trajectories",
@@ -64,6 +64,21 @@ def scratch_curriculum_epochs(source, epochs):
     return max(1, min(source.curriculum_epochs, epochs // (2 * len(source.curriculum))))
 
 
+def model_curve(res):
+    """The test curve as [[epoch the evaluated model was trained to, nMSE], ...].
+
+    A point evaluated at epoch e is the best-validation model at e, i.e. the weights of the last
+    strict validation improvement at or before e (fit's rule).  A scratch run's epoch-0 point is
+    dropped: it was evaluated before fit fitted the normalisation, so it is not the model fit starts from.
+    """
+    best, best_at, trained_to = float("inf"), 0, {}
+    for r in res["history"]:
+        if r["val_loss"] is not None and r["val_loss"] < best:
+            best, best_at = r["val_loss"], r["epoch"]
+        trained_to[r["epoch"]] = best_at
+    return [[trained_to.get(int(e), int(e)), v] for e, v in res["test_curve"] if e > 0 or res["spec"]["init_from"]]
+
+
 def efficiency(curve):
     """(min test nMSE, first epoch reaching it, their product) of a test curve [[epoch, nmse], ...]."""
     c = np.asarray(curve, dtype=float)
@@ -86,18 +101,23 @@ def analyse(ctx):
     rows, numbers, runs_text = [], {}, []
     for ax, (pattern, label, train, test, source, epochs) in zip(axes[0], cs):
         ft, sc = ctx.result(pattern.format("finetune")), ctx.result(pattern.format("scratch"))
-        eff_ft, eff_sc = efficiency(ft["test_curve"]), efficiency(sc["test_curve"])
-        reach = first_epoch_below(ft["test_curve"], eff_sc[0])
+        c_ft, c_sc = model_curve(ft), model_curve(sc)
+        eff_ft, eff_sc = efficiency(c_ft), efficiency(c_sc)
+        reach = first_epoch_below(c_ft, eff_sc[0])
         numbers[pattern.replace("_{}", "")] = {"finetune": dict(zip(("min_nmse", "epoch", "product"), eff_ft)),
                                        "scratch": dict(zip(("min_nmse", "epoch", "product"), eff_sc)),
                                        "zero_shot_nmse": ft["test_curve"][0][1],
                                        "finetune_epochs_to_scratch_best": reach,
-                                       "test_curves": {"finetune": ft["test_curve"], "scratch": sc["test_curve"]}}
-        rows.append([label, ft["test_curve"][0][1], eff_ft[0], eff_ft[1], eff_ft[2], eff_sc[0], eff_sc[1], eff_sc[2],
+                                       "status": {"finetune": ft["status"], "scratch": sc["status"]},
+                                       "test_curves": {"finetune": c_ft, "scratch": c_sc},
+                                       "evaluated_at": [int(e) for e, _ in ft["test_curve"]]}
+        bad = [f"{w} {r['status']}" for w, r in (("fine-tuned", ft), ("scratch", sc)) if r["status"] != "completed"]
+        rows.append([label + (f" (**{', '.join(bad)}**)" if bad else ""), ft["test_curve"][0][1], eff_ft[0], eff_ft[1], eff_ft[2], eff_sc[0], eff_sc[1], eff_sc[2],
                      f"{eff_sc[2] / eff_ft[2]:.1f}x" if eff_ft[2] > 0 else "",
                      "never" if reach is None else reach])
         for res, name, color in ((ft, "fine-tuned", "C0"), (sc, "scratch", "C3")):
-            c = np.asarray(res["test_curve"], dtype=float)
+            c = np.asarray(res["test_curve"], dtype=float)  # drawn at the evaluation epochs
+            c = c[c[:, 0] > 0] if not res["spec"]["init_from"] else c
             ax.plot(np.maximum(c[:, 0], 1), c[:, 1], "o-", ms=2.5, color=color, lw=1, label=name)
         ax.set_xscale("log")
         ax.set_yscale("log")
@@ -109,16 +129,17 @@ def analyse(ctx):
     fig.tight_layout()
     link = ctx.figure(fig, "finetune_curves")
     text = [
-        f"Test curves: {ctx.runs[cs[0][0].format('finetune')].test_points} evaluations per run, of the "
-        "best-validation model so far. Efficiency = min test nMSE x the first epoch reaching it (paper's",
-        "Table 2 metric, lower is better); ratio = scratch / fine-tuned. 'Zero-shot' is the source model on",
-        "the target test set before any fine-tuning.",
+        f"Test curves: the best-validation model so far, evaluated at {ctx.runs[cs[0][0].format('finetune')].test_points} "
+        "evenly spaced epochs (and, for fine-tuning, at epoch 0: the source model itself, 'zero-shot').",
+        "The epoch of a point is the epoch that model was trained to (its last validation improvement),",
+        "not the evaluation time. Efficiency = min test nMSE x the epoch of that model (the paper's Table 2",
+        "metric, lower is better; a minimum at epoch 0 counts as 1 epoch); ratio = scratch / fine-tuned.",
         "",
         table(["transfer", "zero-shot nMSE", "fine-tuned: min nMSE", "epoch", "efficiency",
                "scratch: min nMSE", "epoch", "efficiency", "ratio", "fine-tuned epochs to scratch's best"], rows),
         "",
         "The paper's Table 2 values are not reproduced here: its full text is not in our reference",
-        "library, so we compare direction and size of the effect, not its numbers (see the reading).",
+        "library, so we compare the direction and size of the effect, not its numbers.",
         "",
         link,
         "",
