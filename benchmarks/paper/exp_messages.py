@@ -14,6 +14,9 @@ import numpy as np
 
 from common import HERE, DataSpec, RunSpec, curve, evaluate_nmse, flatness, main, pyplot, run_line, table
 
+sys.path.insert(0, str(HERE.parents[1] / "tests"))
+from engine_helpers import rollout_ref  # noqa: E402  (the float64 NumPy reference MP-NODE of the tests)
+
 NAME = "messages"
 TITLE = "1. Messages matter (paper Fig. 2, 3a, 4)"
 
@@ -54,9 +57,6 @@ def message_trace(model, x0, graph, steps):
     The engine keeps only x; the float64 NumPy reference of the tests recomputes the
     messages (and must agree with the engine's x, which is checked).
     """
-    sys.path.insert(0, str(HERE.parents[1] / "tests"))
-    from engine_helpers import rollout_ref
-
     xs, ms = rollout_ref(model.spec, model.theta, model.normalize_x(x0), graph, None, steps, with_messages=True)
     x = model.denormalize_x(xs)
     engine = model.rollout(x0, graph, steps=steps)

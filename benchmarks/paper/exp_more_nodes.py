@@ -35,9 +35,12 @@ def analyse(ctx):
     spec = run_spec(ctx.mode)
     res = ctx.result(spec.name)
     models = [(spec.name, "zero-shot")]
-    # the Lorenz10 models of exp_finetune, when that experiment has run
+    # the Lorenz10 models of exp_finetune, when that experiment has trained them with today's settings
+    import exp_finetune
+
+    current = {s.name: s.key for s in exp_finetune.runs(ctx.mode)}
     models += [(n, "trained on Lorenz10") for n in ("lorenz10_scratch_500", "lorenz10_finetune_500")
-               if ctx.result(n) is not None]
+               if (ctx.result(n) or {}).get("key") == current[n]]
     rows, numbers = [], {"run": run_line(res), "val_improvement_last_20pct": flatness(res)}
     for name, how in models:
         model = ctx.model(name)
