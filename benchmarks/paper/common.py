@@ -132,10 +132,14 @@ class RunSpec:
     test: DataSpec = None
     test_points: int = 0
     seed: int = 0
+    lr: float = 1e-3
 
     @property
     def key(self):
-        return hashlib.sha1(json.dumps(dataclasses.asdict(self), sort_keys=True, default=str).encode()).hexdigest()[:12]
+        """A digest of the settings that differ from the defaults (so a new field keeps old caches valid)."""
+        changed = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                   if getattr(self, f.name) != f.default}
+        return hashlib.sha1(json.dumps(changed, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
 def run_dir(work, name):
@@ -175,7 +179,7 @@ def train_run(spec, work, verbose=True):
         model = Model.create(first.state_dim, first.control_dim, spec.message_dim, spec.hidden, first.dt,
                              zero_messages=spec.zero_messages, seed=spec.seed)
         norm = "fit"
-    config = TrainConfig(epochs=spec.epochs, seed=spec.seed, norm=norm, curriculum=tuple(spec.curriculum),
+    config = TrainConfig(epochs=spec.epochs, seed=spec.seed, norm=norm, lr=spec.lr, curriculum=tuple(spec.curriculum),
                          curriculum_epochs=spec.curriculum_epochs)
     stops = [spec.epochs]
     if spec.test_points:
@@ -393,7 +397,8 @@ def run_line(res):
     bits = [f"{res['train_trajectories']} trajectories ({', '.join(res['train_data'])})",
             f"{res['epochs']} epochs" + (f" (curriculum {s['curriculum']} x {s['curriculum_epochs']})"
                                          if s["curriculum"] else ""),
-            f"seed {s['seed']}", f"dm {s['message_dim']}" + (", zero messages" if s["zero_messages"] else ""),
+            f"seed {s['seed']}", f"lr {s.get('lr', 1e-3):g}",
+            f"dm {s['message_dim']}" + (", zero messages" if s["zero_messages"] else ""),
             f"{res.get('train_seconds', res['seconds']) / 60:.1f} min"]
     if s["init_from"]:
         bits.append(f"from {s['init_from']}")
