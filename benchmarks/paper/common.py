@@ -472,11 +472,14 @@ def write_results(out, mode, argv, seconds, jobs):
     import numba
 
     cmd = " ".join(["python benchmarks/paper/run_all.py", *argv]).strip()
+    results = [json.loads(p.read_text()) for p in sorted((out / "work" / "runs").glob("*/result.json"))]
+    train_min = sum(r.get("train_seconds", r["seconds"]) for r in results) / 60
     head = [f"# MP-NODE paper results on mpnode ({mode.name} run)", "",
             f"Made by `{cmd}` on {time.strftime('%Y-%m-%d')}; the last invocation took {seconds / 60:.1f} min "
             f"(cached runs are not retrained). Machine: {platform.machine()}, {os.cpu_count()} CPUs, Python "
             f"{platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}. "
             + (f"Trainings ran {jobs} at a time, one numba thread each. " if jobs > 1 else "")
+            + f"The {len(results)} trainings took {train_min:.0f} core-minutes in all. "
             + "Numbers per experiment are in `results/*.json`.", ""]
     reading = HERE / "reading.md"
     if not mode.quick and reading.exists() and out == HERE:

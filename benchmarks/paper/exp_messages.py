@@ -21,7 +21,7 @@ NAME = "messages"
 TITLE = "1. Messages matter (paper Fig. 2, 3a, 4)"
 
 SYSTEMS = {  # key: (scene, training trajectories full/quick, epochs full/quick)
-    "pendulum": ("coupled_pendulum", (500, 12), (3000, 4)),
+    "pendulum": ("coupled_pendulum", (500, 12), (4000, 4)),
     "kuramoto": ("kuramoto10_ba", (500, 12), (1000, 4)),
 }
 
