@@ -234,10 +234,6 @@ def _worker_init():
     os.environ["NUMBA_NUM_THREADS"] = "1"
 
 
-def _train_in_worker(spec, work):
-    return train_run(spec, work)
-
-
 def ensure_runs(specs, work, jobs=2, force=False):
     """Train every run of ``specs`` whose cached result is missing or was made with other settings."""
     by_name = {}
@@ -282,12 +278,12 @@ def ensure_runs(specs, work, jobs=2, force=False):
                     del todo[s.name]
                 elif len(running) < jobs:
                     print(f"  start {s.name}", flush=True)
-                    running[pool.submit(_train_in_worker, s, work)] = s
+                    running[pool.submit(train_run, s, work)] = s
                     del todo[s.name]
+            if pool is None and not ready or pool is not None and not running:
+                raise RuntimeError("runs wait on runs that cannot start: " + ", ".join(todo))
             if pool is None:
                 continue
-            if not running:
-                raise RuntimeError("runs wait on runs that cannot start: " + ", ".join(todo))
             finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
             for fut in finished:
                 s = running.pop(fut)
