@@ -95,18 +95,17 @@ def reference_timing(traj, pred, sample):
     import numpy as np
 
     from mpnode.data_gen.simulate import integrate
-    from mpnode.data_gen.systems import SYSTEMS, make_rhs
+    from mpnode.data_gen.systems import SYSTEMS, file_rhs
 
     if traj.system not in SYSTEMS or "predicted_by" in traj.attrs or traj.u is not None:
         return None
     system = SYSTEMS[traj.system]
-    params = {**traj.attrs, **traj.params}
     method = str(traj.attrs.get("integrator", "DOP853"))
     rtol, atol = float(traj.attrs.get("rtol", 1e-9)), float(traj.attrs.get("atol", 1e-9))
     if traj.state_dim != system.state_dim:
         return None
     try:
-        rhs = [make_rhs(traj.system, params, g) for g in traj.graphs]
+        rhs = file_rhs(traj)
     except (KeyError, ValueError, TypeError):
         return None
     k = min(sample, traj.n_trajectories)

@@ -198,3 +198,13 @@ def make_rhs(system, params, graph):
     (e.g. a file's root attributes merged with its `params/` group); extra keys are ignored.
     """
     return get_system(system).rhs(params, graph)
+
+
+def file_rhs(traj):
+    """f(t, y) for each graph of a trajectory file, rebuilt from what the file records.
+
+    traj : Trajectories of a reference system (root attributes + `params/` hold its parameters).
+    Raises KeyError/ValueError/TypeError when the file lacks or garbles a parameter.
+    """
+    params = {**traj.attrs, **traj.params}
+    return [make_rhs(traj.system, params, g) for g in traj.graphs]

@@ -158,7 +158,7 @@ def load_model(work, name):
     return Model.load(run_dir(work, name) / "model.h5")
 
 
-def train_run(spec, work, verbose=True):
+def train_run(spec, work):
     """Train ``spec`` and write runs/NAME/{model.h5, model.h5.log.jsonl, result.json}; return the result."""
     from mpnode.evaluate import evaluate
     from mpnode.model import Model
@@ -191,7 +191,7 @@ def train_run(spec, work, verbose=True):
     mark = {"next": 0.0}
 
     def progress(rec):
-        if verbose and rec["epoch"] >= mark["next"] * spec.epochs:
+        if rec["epoch"] >= mark["next"] * spec.epochs:
             mark["next"] += 0.25
             print(f"    {spec.name}: epoch {rec['epoch']}/{spec.epochs}, val loss {rec['val_loss']:.4g}, "
                   f"{time.perf_counter() - t0:.0f} s", flush=True)
@@ -306,20 +306,26 @@ def _report(res, started, k, n):
 # ---------------------------------------------------------------------------
 @dataclass
 class Context:
+    """What the analyses share; models and data files are read once (the analyses only copy them)."""
+
     mode: Mode
     out: Path
     work: Path
     figures: Path
-    runs: dict = field(default_factory=dict)  # name -> RunSpec
+    _read: dict = field(default_factory=dict)
 
     def result(self, name):
         return load_result(self.work, name)
 
     def model(self, name):
-        return load_model(self.work, name)
+        if ("model", name) not in self._read:
+            self._read["model", name] = load_model(self.work, name)
+        return self._read["model", name]
 
     def data(self, spec):
-        return load_data(self.work, spec)
+        if spec not in self._read:
+            self._read[spec] = load_data(self.work, spec)
+        return self._read[spec]
 
     def figure(self, fig, name):
         """Save a matplotlib figure as figures/NAME.png; returns the markdown link."""
@@ -345,11 +351,11 @@ def pyplot():
     return plt
 
 
-def evaluate_nmse(model, traj, substeps=None):
+def evaluate_nmse(model, traj):
     """The evaluation of `mpnode eval` (EvalResult): nMSE per step and over steps 1..T."""
     from mpnode.evaluate import evaluate
 
-    return evaluate(model, traj, substeps=substeps, check_stability=False)
+    return evaluate(model, traj, check_stability=False)
 
 
 def zscore_mse(model, traj, pred):
@@ -432,7 +438,6 @@ def main(experiments, argv=None, description="MP-NODE paper suite"):
     modules = [importlib.import_module(name) for name in experiments]
     t0 = time.perf_counter()
     specs = [s for m in modules for s in m.runs(mode)]
-    ctx.runs = {s.name: s for s in specs}
     needed = {d for s in specs for d in s.train} | {s.test for s in specs if s.test is not None}
     needed |= {d for m in modules for d in getattr(m, "data", lambda mode: [])(mode)}
     missing = [d for d in sorted(needed, key=lambda d: d.key) if args.force or not data_path(work, d).exists()]

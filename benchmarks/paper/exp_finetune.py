@@ -53,9 +53,14 @@ def cases(mode):
     return out
 
 
+def test_points(mode):
+    """Evaluations of the test curve per run (besides fine-tuning's epoch 0)."""
+    return mode.pick(20, 2)
+
+
 def runs(mode):
     specs = []
-    points = mode.pick(20, 2)
+    points = test_points(mode)
     for pattern, _, train, test, source, epochs, lrs in cases(mode):
         specs.append(source)
         specs += [RunSpec(finetune_name(pattern, lr), (train,), epochs, message_dim=source.message_dim,
@@ -147,7 +152,7 @@ def analyse(ctx):
     fig.tight_layout()
     link = ctx.figure(fig, "finetune_curves")
     text = [
-        f"Test curves: the best-validation model so far, evaluated at {ctx.runs[cs[0][0].format('finetune')].test_points} "
+        f"Test curves: the best-validation model so far, evaluated at {test_points(ctx.mode)} "
         "evenly spaced epochs (and, for fine-tuning, at epoch 0: the source model itself, 'zero-shot').",
         "The epoch of a point is the epoch that model was trained to (its last validation improvement),",
         "not the evaluation time. Efficiency = min test nMSE x the epoch of that model (the paper's Table 2",

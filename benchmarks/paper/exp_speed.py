@@ -92,20 +92,13 @@ def broadcasts(rhs, x0):
     return np.shape(batch) == each.shape and np.allclose(batch, each, rtol=1e-12, atol=1e-12)
 
 
-def reference(traj):
-    """(right-hand side per graph, guard) rebuilt from the file's recorded parameters."""
-    from mpnode.data_gen.systems import get_system, make_rhs
-
-    params = {**traj.attrs, **traj.params}
-    return [make_rhs(traj.system, params, g) for g in traj.graphs], get_system(traj.system).guard
-
-
 def measure(model, traj, sample, repeats):
     """Rows (family, setting, dtype, seconds per trajectory, nMSE) for one system."""
     from mpnode.data_gen.simulate import integrate
+    from mpnode.data_gen.systems import file_rhs, get_system
     from mpnode.evaluate import blow_up_mask, data_box, nmse_per_step
 
-    rhs, guard = reference(traj)
+    rhs, guard = file_rhs(traj), get_system(traj.system).guard
     k = min(sample, traj.n_trajectories)
     x0 = np.asarray(traj.x[:k, 0], dtype=np.float64)
     gi = np.asarray(traj.graph_index[:k])
