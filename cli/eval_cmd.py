@@ -1,8 +1,6 @@
 """`mpnode eval MODEL DATA` and `mpnode simulate MODEL SCENE`: use a trained model."""
 import json
-import math
 import os
-import time
 
 import click
 
@@ -53,17 +51,6 @@ def substeps_options(f):
     return f
 
 
-def substeps_attrs(substeps, auto_report):
-    """Attributes naming the substeps of a predictions file (and auto's rule and estimate)."""
-    attrs = {"substeps": int(substeps)}
-    if auto_report is not None:
-        attrs.update(substeps_auto=1, substeps_tol=float(auto_report["tol"]),
-                     substeps_tol_reached=int(auto_report["reached"]), substeps_rule=auto_report["rule"])
-        if isinstance(auto_report["estimate"], float):
-            attrs["substeps_estimate"] = auto_report["estimate"]
-    return attrs
-
-
 def format_substeps(substeps, auto_report, stability):
     """Lines about the RK4 substeps: auto's choice, the step-doubling estimate, step-too-large."""
     lines = []
@@ -82,64 +69,27 @@ def format_substeps(substeps, auto_report, stability):
     return lines
 
 
-# ---------------------------------------------------------------------------
-# Reference timing (data_gen knows the physics; the library does not)
-# ---------------------------------------------------------------------------
-def reference_timing(traj, pred, sample):
-    """Time the reference simulator on the first ``sample`` trajectories' initial states.
-
-    Returns a dict (system, integrator, sample, seconds per trajectory, the learned model's
-    seconds per trajectory on the same batch, the reference's own nmse against the file), or
-    None when the file does not name a reference system data_gen can rebuild.
-    """
-    import numpy as np
-
-    from mpnode.data_gen.simulate import integrate
-    from mpnode.data_gen.systems import SYSTEMS, file_rhs
-
-    if traj.system not in SYSTEMS or "predicted_by" in traj.attrs or traj.u is not None:
-        return None
-    system = SYSTEMS[traj.system]
-    method = str(traj.attrs.get("integrator", "DOP853"))
-    rtol, atol = float(traj.attrs.get("rtol", 1e-9)), float(traj.attrs.get("atol", 1e-9))
-    if traj.state_dim != system.state_dim:
-        return None
-    try:
-        rhs = file_rhs(traj)
-    except (KeyError, ValueError, TypeError):
-        return None
-    k = min(sample, traj.n_trajectories)
-    x = np.asarray(traj.x, dtype=np.float64)
-    out = np.empty((k,) + x.shape[1:])
-    start = time.perf_counter()
-    for b in range(k):
-        out[b] = integrate(rhs[int(traj.graph_index[b])], x[b, 0], traj.horizon, traj.dt, method, rtol, atol,
-                           system.guard)
-    seconds = time.perf_counter() - start
-    var = x.reshape(-1, x.shape[-1]).var(axis=0)
-    var[var <= 0] = 1.0
-    ref_err = float((((out[:, 1:] - x[:k, 1:]) ** 2) / var).mean())
-    return {"system": traj.system, "integrator": f"{method} rtol={rtol:g} atol={atol:g}", "sample": k,
-            "reference_seconds_per_trajectory": seconds / k, "reference_nmse_vs_file": ref_err}
+def plot_option(what):
+    """--plot OUT.png for a command whose figure shows ``what``."""
+    return click.option("--plot", type=click.Path(dir_okay=False), metavar="OUT.png",
+                        help=f"Also draw {what} to this image file (.png, .pdf, .svg; atomic).  Needs the plot "
+                             "extra: pip install 'mpnode[plot]'; without it the command stops before any work.")
 
 
-def learned_timing_on_sample(model, traj, k, repeats=3):
-    """Seconds per trajectory of the learned rollout of the first k trajectories as one batch (best of repeats)."""
-    from mpnode.evaluate import rollout_all
+def check_plot(plot):
+    """Before any work: a figure can be written to ``plot`` (matplotlib installed, a figure format)."""
+    if plot:
+        from mpnode.plot import check_output
 
-    x0 = traj.x[:k, 0]
-    best = math.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        rollout_all(model, x0, traj.graphs, traj.graph_index[:k], traj.horizon)
-        best = min(best, time.perf_counter() - start)
-    return best / k
+        check_output(plot)
 
 
-def run_eval(model, traj, source, allow_dt=False, reference_sample=20, substeps=None, substeps_tol=None,
-             max_substeps=None):
-    """Evaluate and time; returns (EvalResult, report dict)."""
+def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20, substeps=None,
+                        substeps_tol=None, max_substeps=None):
+    """Evaluate, and time the reference simulator beside the model when the file names one:
+    returns (EvalResult, report dict)."""
     from mpnode import stepsize
+    from mpnode.data_gen.reference import speed_against_reference
     from mpnode.evaluate import evaluate
 
     result = evaluate(model, traj, source=source, allow_dt_mismatch=allow_dt, substeps=substeps,
@@ -147,14 +97,7 @@ def run_eval(model, traj, source, allow_dt=False, reference_sample=20, substeps=
                       max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS)
     report = {"data": source, **result.summary()}
     if reference_sample > 0:
-        ref = reference_timing(traj, result.predictions, reference_sample)
-        if ref is not None:
-            m = model if math.isclose(traj.dt, model.spec.dt) else model.with_spec(dt=float(traj.dt))
-            m = m.with_spec(substeps=result.substeps)
-            ref["learned_seconds_per_trajectory"] = learned_timing_on_sample(m, traj, ref["sample"])
-            ref["learned_seconds_per_trajectory_full_batch"] = result.rollout_seconds / result.n_trajectories
-            ref["speedup"] = ref["reference_seconds_per_trajectory"] / ref["learned_seconds_per_trajectory"]
-        report["reference"] = ref
+        report["reference"] = speed_against_reference(model, traj, result, reference_sample)
     return result, report
 
 
@@ -215,9 +158,11 @@ def format_report(report, model_name):
               help="Roll the model out with the file's dt even if it was trained with another.")
 @click.option("--reference-sample", type=click.IntRange(min=0), default=20, show_default=True,
               help="Trajectories the reference simulator is timed on (0: skip the reference).")
+@plot_option("truth against prediction for the first trajectories and nodes, per state dimension, and the "
+             "error over time with the predictable horizon")
 @substeps_options
-def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, reference_sample, substeps, substeps_tol,
-             max_substeps):
+def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, reference_sample, plot, substeps,
+             substeps_tol, max_substeps):
     """Roll MODEL out from every initial state of DATA and report error and speed.
 
     Error: normalised MSE (squared error / per-dimension variance of DATA's true
@@ -239,29 +184,43 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     (missing file, dx/du or dt mismatch); 3 predictions non-finite and --predictions
     given (nothing written).
     """
+    from mpnode.atomic import check_outputs
     from mpnode.data import read_trajectories, write_trajectories
-    from mpnode.evaluate import prediction_file
+    from mpnode.evaluate import predictions_file, substeps_attrs
     from mpnode.model import Model
 
+    check_plot(plot)
+    outputs = {k: v for k, v in (("--predictions", predictions), ("--plot", plot)) if v}
+    check_outputs(outputs, [model_file, data])
     model = Model.load(model_file)
     traj = read_trajectories(data)
-    result, report = run_eval(model, traj, data, allow_dt_mismatch, reference_sample, substeps, substeps_tol,
-                              max_substeps)
+    result, report = evaluate_and_report(model, traj, data, allow_dt_mismatch, reference_sample, substeps,
+                                         substeps_tol, max_substeps)
     report["model"] = model_file
-    if as_json:
-        click.echo(json.dumps(report, indent=2, allow_nan=False))
-    else:
-        click.echo(format_report(report, model_file))
+    click.echo(json.dumps(report, indent=2, allow_nan=False) if as_json else format_report(report, model_file))
+    if plot:  # before the predictions file, which refuses non-finite predictions: a blow-up gets its figure
+        from mpnode.plot import plot_eval
+
+        plot_eval(traj, result, plot, title=f"{os.path.basename(model_file)} on {os.path.basename(data)}")
+        if not as_json:
+            click.echo(f"wrote {plot}")
     if predictions:
-        attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report)}
-        try:
-            pf = prediction_file(traj, result.predictions, os.path.abspath(model_file), attrs)
-        except NumericalError as e:
-            st = result.stability
-            raise NumericalError(f"{e}; {st['message']}" if st and st.get("message") else str(e)) from None
+        attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report),
+                 **{k: traj.attrs[k] for k in ("state_names",) if k in traj.attrs}}
+        pf = _or_why(lambda: predictions_file(result.predictions, traj.graphs, traj.graph_index, traj.dt, traj.system,
+                                              os.path.abspath(model_file), traj.u, attrs), result.stability)
         write_trajectories(predictions, pf)
         if not as_json:
             click.echo(f"wrote {predictions}")
+
+
+def _or_why(make, stability):
+    """make(); a NumericalError (non-finite predictions) carries the stability check's diagnosis."""
+    try:
+        return make()
+    except NumericalError as e:
+        why = stability and stability.get("message")
+        raise NumericalError(f"{e}; {why}" if why else str(e)) from None
 
 
 @main.command("simulate")
@@ -272,8 +231,10 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
 @click.option("--trajectories", "-B", type=click.IntRange(min=1), help="Number of trajectories (scene default).")
 @click.option("--horizon", "-T", type=click.IntRange(min=1), help="Steps per trajectory (scene default).")
 @click.option("--seed", type=int, help="Seed of the initial states (same draws as `mpnode generate --seed`).")
+@plot_option("the simulated trajectories of the first nodes, per state dimension")
 @substeps_options
-def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, substeps, substeps_tol, max_substeps):
+def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, substeps, substeps_tol,
+                 max_substeps):
     """Roll MODEL out on SCENE (built-in name or .toml): any graph, any number of nodes.
 
     Initial states come from the scene's sampler, drawn exactly as `mpnode generate`
@@ -289,20 +250,16 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, substep
     avoid that, the RK4 step was too large and a --substeps N is suggested.
     """
     from dataclasses import replace
-    from types import SimpleNamespace
 
-    import numpy as np
-
+    from mpnode.atomic import check_outputs
     from mpnode.data import write_trajectories
-    from mpnode.data_gen import load_scene
-    from mpnode.data_gen.initial import get_sampler
+    from mpnode.data_gen import initial_states, load_scene
     from mpnode.data_gen.systems import get_system
-    from mpnode.evaluate import prediction_file, rollout_all
+    from mpnode.evaluate import predictions_file, simulate, substeps_attrs
     from mpnode.model import Model
 
-    folder = os.path.dirname(os.path.abspath(output))
-    if not os.path.isdir(folder):
-        raise InputError("--output", output, f"folder {folder} does not exist", "a path in an existing folder")
+    check_plot(plot)
+    check_outputs({"--output": output, **({"--plot": plot} if plot else {})}, [model_file, scene])
     model = Model.load(model_file)
     s = load_scene(scene)
     s = replace(s, **{k: v for k, v in dict(trajectories=trajectories, horizon=horizon, seed=seed).items()
@@ -314,49 +271,24 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, substep
     if model.spec.control_dim:
         raise InputError(model_file, "control_dim", f"the model takes controls (du = {model.spec.control_dim}) "
                          "but scenes have none", "a model without controls")
-    graphs = s.graph.build()
-    sampler = get_sampler(s.initial, system, s.graph.n_nodes, scene, "initial")
-    gi = np.arange(s.trajectories) % len(graphs)
-    x0 = np.stack([sampler(np.random.default_rng(np.random.SeedSequence(s.seed, spawn_key=(b,))), system,
-                           graphs[gi[b]].n_nodes) for b in range(s.trajectories)])
-    from mpnode import stepsize
-    from mpnode.evaluate import blow_up_mask
+    x0, graphs, gi = initial_states(s)
+    model.check_nodes(s.graph.n_nodes, scene, "graph.nodes")
+    sim = simulate(model, x0, graphs, gi, s.horizon, substeps=substeps, substeps_tol=substeps_tol,
+                   max_substeps=max_substeps)
+    for line in format_substeps(sim.substeps, sim.substeps_report, sim.stability):
+        click.echo(line.strip(), err=bool(sim.stability.get("message")) and "WARNING" in line)
+    if plot:  # before the trajectory file, which refuses non-finite predictions: a blow-up gets its figure
+        from mpnode.plot import plot_simulation
 
-    graph_arg = graphs[0] if len(graphs) == 1 else [graphs[int(i)] for i in gi]
-    auto_report = None
-    if substeps == "auto":
-        chosen, auto_report = stepsize.choose_substeps(model, x0, graph_arg, None, substeps_tol,
-                                                       max_substeps=max_substeps, horizon=s.horizon)
-        model = model.with_spec(substeps=chosen)
-    elif substeps is not None:
-        model = model.with_spec(substeps=substeps)
-    start = time.perf_counter()
-    pred = rollout_all(model, x0, graphs, gi, s.horizon)
-    seconds = time.perf_counter() - start
-    box = simulation_box(model, x0)
-    stability = stepsize.stability_check(model, x0, graph_arg, None, pred, blow_up_mask(pred, box=box),
-                                         substeps_tol, max_substeps=max_substeps, box=box)
-    for line in format_substeps(model.spec.substeps, auto_report, stability):
-        click.echo(line.strip(), err=bool(stability.get("message")) and "WARNING" in line)
-
-    src = SimpleNamespace(graphs=graphs, dt=model.spec.dt, system=s.system, u=None, graph_index=gi)
-    attrs = {"scene": s.name, "seed": s.seed, "description": f"MP-NODE rollout of {s.description}",
-             **s.graph.describe(), **substeps_attrs(model.spec.substeps, auto_report)}
-    try:
-        pf = prediction_file(src, pred, os.path.abspath(model_file), attrs)
-    except NumericalError as e:
-        raise NumericalError(f"{e}; {stability['message']}" if stability.get("message") else str(e)) from None
+        plot_simulation(sim.predictions, model.spec.dt, plot, state_names=list(system.state_names) or None,
+                        title=f"{os.path.basename(model_file)} ({model.kind}) on {s.name}")
+        click.echo(f"wrote {plot}")
+    attrs = {"scene": s.name, "seed": s.seed, "description": f"{model.kind} rollout of {s.description}",
+             **s.graph.describe(), **substeps_attrs(sim.substeps, sim.substeps_report),
+             **({"state_names": list(system.state_names)} if system.state_names else {})}
+    pf = _or_why(lambda: predictions_file(sim.predictions, graphs, gi, model.spec.dt, s.system,
+                                          os.path.abspath(model_file), attrs=attrs), sim.stability)
     write_trajectories(output, pf)
+    node_steps = s.trajectories * s.graph.n_nodes * s.horizon
     click.echo(f"wrote {output}: {s.name}, B={s.trajectories}, T={s.horizon}, N={s.graph.n_nodes}, "
-               f"rollout {seconds:.3g} s ({s.trajectories * s.graph.n_nodes * s.horizon / max(seconds, 1e-12):.3g} "
-               f"node-steps/s)")
-
-
-def simulation_box(model, x0):
-    """(mid, r) of the blow-up test without true states: 10x this box is mean +- 20 std of the
-    training data (the model's normalisation), widened to hold the initial states x0."""
-    import numpy as np
-
-    lo = np.minimum(model.x_mean - 2 * model.x_std, x0.reshape(-1, x0.shape[-1]).min(axis=0))
-    hi = np.maximum(model.x_mean + 2 * model.x_std, x0.reshape(-1, x0.shape[-1]).max(axis=0))
-    return (lo + hi) / 2, hi - lo
+               f"rollout {sim.seconds:.3g} s ({node_steps / max(sim.seconds, 1e-12):.3g} node-steps/s)")

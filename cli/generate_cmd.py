@@ -1,12 +1,10 @@
 """`mpnode generate SCENE -o FILE` and `mpnode scenes`: make trajectory files from the reference systems."""
-import os
 import sys
 import time
 from dataclasses import replace
 
 import click
 
-from mpnode.errors import InputError
 
 from .main import main
 
@@ -37,12 +35,11 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers):
     Exit status: 0 written; 2 bad scene, option or output path; 3 trajectories
     kept failing (nothing written).
     """
+    from mpnode.atomic import check_outputs
     from mpnode.data import write_trajectories
     from mpnode.data_gen import generate as run, load_scene
 
-    folder = os.path.dirname(os.path.abspath(output))
-    if not os.path.isdir(folder):
-        raise InputError("--output", output, f"folder {folder} does not exist", "a path in an existing folder")
+    check_outputs({"--output": output}, [scene])
     s = load_scene(scene)
     overrides = dict(trajectories=trajectories, horizon=horizon, dt=dt, seed=seed)
     s = replace(s, **{k: v for k, v in overrides.items() if v is not None})

@@ -1,4 +1,4 @@
-"""`mpnode inspect FILE`: validate a trajectory file and describe what it holds."""
+"""`mpnode inspect FILE`: validate a trajectory file or a model file and describe what it holds."""
 import json
 
 import click
@@ -10,21 +10,43 @@ from .main import main
 @click.argument("file", type=click.Path(exists=True, dir_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of text (for scripts).")
 def inspect(file, as_json):
-    """Check FILE against the trajectory format and summarize it.
+    """Check FILE against its format and summarize it.
 
-    Every rule of the format (version 1) is checked; a file that breaks one is
-    reported as "Error: FILE: FIELD: problem (expected ...)" with exit status 2.
-    A valid file prints the system, the sizes B (trajectories), T (steps),
-    N (nodes), dx/du (state/control size per node), dt, the dtype, every graph
-    with its node and edge count, the stored parameters and other attributes.
+    A trajectory file: every rule of the trajectory format is checked; a valid file
+    prints the system, the sizes B (trajectories), T (steps), N (nodes), dx/du
+    (state/control size per node), dt, the dtype, every graph with its node and edge
+    count, the stored parameters and other attributes.  A model file: its kind
+    (mpnode, l2s or node), sizes, aggregation, integration settings, parameter count
+    and the attributes training recorded (data, recipe, epoch, validation loss).
+    A file that breaks a rule is reported as "Error: FILE: FIELD: problem (expected ...)"
+    with exit status 2.
     """
-    from mpnode.data import read_trajectories, summarize
+    from mpnode.data import file_format, read_trajectories, summarize
+    from mpnode.model import Model
 
-    summary = summarize(read_trajectories(file))
-    if as_json:
-        click.echo(json.dumps({"file": file, **summary}, indent=2, allow_nan=False))
+    if file_format(file) == "mpnode.model":
+        summary, text = Model.load(file).summary(), _model_text
     else:
-        click.echo(_text(file, summary))
+        summary, text = summarize(read_trajectories(file)), _text
+    click.echo(json.dumps({"file": file, **summary}, indent=2, allow_nan=False, default=str) if as_json
+               else text(file, summary))
+
+
+def _model_text(file, s):
+    nodes = f", trained on systems of N={s['n_nodes']} nodes only" if s["n_nodes"] else ", any graph"
+    agg = "" if s["kind"] == "node" else f"aggregation {s['aggregation']}" + (
+        f" (over mean in-degree {s['mean_degree']:g})" if s["mean_degree"] else "")
+    lines = [f"file:        {file}",
+             f"kind:        {s['kind']}{nodes}",
+             f"sizes:       dx={s['state_dim']}, du={s['control_dim']}, dm={s['message_dim']}, H={s['hidden']}, "
+             f"{s['parameters']} parameters ({s['dtype']})",
+             f"messages:    {agg}" + (", self-messages" if s["self_messages"] else "")
+             + (", clamped to zero" if s["zero_messages"] else ""),
+             f"integration: RK4, dt={s['dt']:g}, {s['substeps']} substep(s) per dt",
+             "arrays:      " + ", ".join(f"{k} {v}" for k, v in s["arrays"].items()),
+             "attributes:  " + ("" if s["attrs"] else "none")]
+    lines += [f"  {key} = {value!r}" for key, value in s["attrs"].items()]
+    return "\n".join(line.rstrip() for line in lines)
 
 
 def _text(file, s):

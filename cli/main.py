@@ -37,3 +37,4 @@ from . import inspect_cmd  # noqa: E402,F401
 from . import generate_cmd  # noqa: E402,F401
 from . import train_cmd  # noqa: E402,F401
 from . import eval_cmd  # noqa: E402,F401
+from . import convert_cmd  # noqa: E402,F401

@@ -1,4 +1,4 @@
-"""`mpnode train DATA... -o MODEL` and `mpnode finetune MODEL DATA... -o NEW`: learn an MP-NODE."""
+"""`mpnode train DATA... -o MODEL` and `mpnode finetune MODEL DATA... -o NEW`: learn a model."""
 import os
 import sys
 import tempfile
@@ -6,46 +6,72 @@ import tempfile
 import click
 
 from mpnode.errors import InputError, NumericalError
+from mpnode.train import TrainConfig
 
+from .eval_cmd import check_plot, plot_option
 from .main import main
 
 #: `mpnode train SCENE` (a scene instead of files): trajectories generated and the default time budget
 SCENE_TRAJECTORIES = 300
 SCENE_EVAL_TRAJECTORIES = 100
-SCENE_TIME_LIMIT = 3.0  # minutes
+SCENE_TIME_LIMIT = "3m"
+DEFAULT = TrainConfig()
+
+
+class Duration(click.ParamType):
+    """--time-limit: minutes, or a number with s, m or h."""
+
+    name = "DURATION"
+
+    def convert(self, value, param, ctx):
+        from mpnode.runs import parse_duration
+
+        try:
+            return parse_duration(value)
+        except InputError as e:
+            self.fail(f"{value!r}: {e.expected}", param, ctx)
 
 
 def training_options(f):
-    """The optimisation flags shared by train and finetune (defaults: the seed code's MP-NODE run)."""
+    """The optimisation flags shared by train and finetune; defaults are TrainConfig's."""
+    d = DEFAULT
     options = [
-        click.option("--epochs", type=click.IntRange(min=0), default=4000, show_default=True,
+        click.option("--epochs", type=click.IntRange(min=0), default=d.epochs, show_default=True,
                      help="Passes over the training trajectories."),
-        click.option("--time-limit", type=click.FloatRange(min=0, min_open=True),
-                     help="Stop cleanly after this many minutes (best model and checkpoint saved)."),
-        click.option("--batch-size", type=click.IntRange(min=1), default=128, show_default=True,
+        click.option("--time-limit", type=Duration(),
+                     help="Stop cleanly after this long (best model and checkpoint saved): minutes, or 90s, 1.5h."),
+        click.option("--batch-size", type=click.IntRange(min=1), default=d.batch_size, show_default=True,
                      help="Trajectories per batch (each batch from one file: one block-diagonal graph)."),
-        click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True,
+        click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=d.lr, show_default=True,
                      help="Adam learning rate."),
-        click.option("--beta1", type=click.FloatRange(0, 1, max_open=True), default=0.9, show_default=True),
-        click.option("--beta2", type=click.FloatRange(0, 1, max_open=True), default=0.999, show_default=True),
-        click.option("--eps", type=click.FloatRange(min=0), default=1e-8, show_default=True, help="Adam epsilon."),
-        click.option("--clip", type=click.FloatRange(min=0), default=500.0, show_default=True,
+        click.option("--beta1", type=click.FloatRange(0, 1, max_open=True), default=d.beta1, show_default=True),
+        click.option("--beta2", type=click.FloatRange(0, 1, max_open=True), default=d.beta2, show_default=True),
+        click.option("--eps", type=click.FloatRange(min=0), default=d.eps, show_default=True, help="Adam epsilon."),
+        click.option("--clip", type=click.FloatRange(min=0), default=d.clip, show_default=True,
                      help="Gradient clip norm, applied to each parameter array separately (0: no clipping)."),
         click.option("--clip-global", is_flag=True, help="Clip by one norm over all parameters instead."),
-        click.option("--val-split", type=click.FloatRange(0, 1, max_open=True), default=0.3, show_default=True,
-                     help="Fraction of every file's trajectories held out for validation (random, seeded)."),
-        click.option("--noise", type=click.FloatRange(min=0), default=1e-4, show_default=True,
+        click.option("--val-split", type=click.FloatRange(0, 1, max_open=True), default=d.val_split,
+                     show_default=True, help="Fraction of every file's trajectories held out for validation "
+                     "(random, seeded)."),
+        click.option("--noise", type=click.FloatRange(min=0), default=d.noise, show_default=True,
                      help="Std of the Gaussian noise added once to the normalised training states."),
-        click.option("--loss", type=click.Choice(["huber", "mse"]), default="huber", show_default=True),
-        click.option("--patience", type=click.IntRange(min=1), default=500, show_default=True,
+        click.option("--loss", type=click.Choice(["huber", "mse"]), default=d.loss, show_default=True),
+        click.option("--patience", type=click.IntRange(min=1), default=d.patience, show_default=True,
                      help="Epochs without a new best validation loss before the learning rate is cut."),
-        click.option("--lr-decay", type=click.FloatRange(0, 1, min_open=True), default=0.5, show_default=True,
+        click.option("--lr-decay", type=click.FloatRange(0, 1, min_open=True), default=d.lr_decay, show_default=True,
                      help="Factor applied to the learning rate at each cut."),
-        click.option("--min-lr", type=click.FloatRange(min=0), default=1e-6, show_default=True,
+        click.option("--min-lr", type=click.FloatRange(min=0), default=d.min_lr, show_default=True,
                      help="No cut once the learning rate is at or below this."),
-        click.option("--max-bad-steps", type=click.IntRange(min=1), default=5, show_default=True,
-                     help="Stop after this many non-finite steps in a row."),
-        click.option("--seed", type=int, default=0, show_default=True,
+        click.option("--max-bad-steps", type=click.IntRange(min=1), default=d.max_bad_steps, show_default=True,
+                     help="Stop after this many bad steps (non-finite or blown-up) without a new best."),
+        click.option("--schedule", type=click.Choice(["plateau", "cosine"]), default=d.schedule, show_default=True,
+                     help="Learning rate: plateau (cut by --lr-decay after --patience epochs without a new best) or "
+                          "cosine (from --lr down to --min-lr over --epochs, or over --time-limit when that comes "
+                          "first)."),
+        click.option("--val-graphs", type=click.IntRange(min=0), default=d.val_graphs, show_default=True,
+                     help="Hold out this many whole graphs of every file that has more, for validation: the best "
+                          "model is then the one that does best on graphs it was not trained on."),
+        click.option("--seed", type=int, default=d.seed, show_default=True,
                      help="Seed of the initial weights, the split, the noise and the shuffles."),
         click.option("--substeps", type=click.IntRange(min=1), help="RK4 steps per dt (train default 1; "
                      "finetune default: the model's)."),
@@ -53,13 +79,16 @@ def training_options(f):
                      help="Train first on windows of W1 steps, then W2, ..., then the full horizon (e.g. 5,10,full; "
                           "'full' is implied at the end).  Each trajectory is cut into consecutive windows, each "
                           "starting from its true state; validation stays on the full horizon."),
-        click.option("--curriculum-epochs", type=click.IntRange(min=1), default=100, show_default=True,
-                     help="Epochs per window length of --horizon-curriculum (the full horizon gets the rest)."),
+        click.option("--curriculum-epochs", type=click.IntRange(min=1), default=d.curriculum_epochs,
+                     show_default=True, help="Epochs per window length of --horizon-curriculum (the full horizon "
+                     "gets the rest)."),
         click.option("--resume", is_flag=True,
                      help="Continue the run whose checkpoint (OUTPUT.state) is beside -o; its settings are kept "
                           "except --epochs and --time-limit."),
         click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
-                     help="Model file to write (the best model so far, saved atomically on every improvement)."),
+                     help="Model file to write: the best model so far (saved atomically at most every 10 s and at the end)."),
+        plot_option("the training and validation loss per epoch, the validation normalised MSE and the learning "
+                    "rate (from the training log, at the end of the run, whatever its outcome)"),
     ]
     for opt in reversed(options):
         f = opt(f)
@@ -85,37 +114,44 @@ def _parse_curriculum(ctx, param, value):
     return tuple(windows)
 
 
-def _config(o, norm):
-    from mpnode.train import TrainConfig
+def given_options(o, skip=("output", "resume", "trajectories", "recipe", "plot")):
+    """The library's options (runs.split_options' names) the user set: flags left at their
+    defaults are not passed, so the recipe and the library's defaults fill them."""
+    from click.core import ParameterSource
 
-    return TrainConfig(epochs=o["epochs"], batch_size=o["batch_size"], lr=o["lr"], beta1=o["beta1"],
-                       beta2=o["beta2"], eps=o["eps"], clip=o["clip"],
-                       clip_mode="global" if o["clip_global"] else "per-array", val_split=o["val_split"],
-                       noise=o["noise"], loss=o["loss"], patience=o["patience"], lr_decay=o["lr_decay"],
-                       min_lr=o["min_lr"], seed=o["seed"], norm=norm, max_bad_steps=o["max_bad_steps"],
-                       curriculum=o["curriculum"], curriculum_epochs=o["curriculum_epochs"],
-                       time_limit=None if o["time_limit"] is None else o["time_limit"] * 60.0).check()
-
-
-def _check_output(output):
-    folder = os.path.dirname(os.path.abspath(output))
-    if not os.path.isdir(folder):
-        raise InputError("--output", output, f"folder {folder} does not exist", "a path in an existing folder")
+    ctx = click.get_current_context()
+    options = {k: v for k, v in o.items() if k not in skip and v is not None
+               and ctx.get_parameter_source(k) not in (None, ParameterSource.DEFAULT)}
+    if options.pop("clip_global", False):
+        options["clip_mode"] = "global"
+    return options
 
 
-def _read_all(paths):
-    from mpnode.data import read_trajectories
+def check_outputs(output, inputs, data_file=None, plot=None):
+    """-o, the files beside it and --plot must not be one of the inputs, nor one another
+    (nothing is written if one is); a --plot needs matplotlib (checked first)."""
+    from mpnode.atomic import check_outputs as check
+    from mpnode.train import state_path
+    from mpnode.train_log import log_path
 
-    return [read_trajectories(p) for p in paths]
+    check_plot(plot)
+    outputs = {"--output": output, "--output (log)": log_path(output), "--output (checkpoint)": state_path(output)}
+    if data_file:
+        outputs["--output (data)"] = data_file
+    if plot:
+        outputs["--plot"] = plot
+    check(outputs, [p for p in inputs if os.path.exists(p)])
 
 
 def _fmt(v):
     return "-" if v is None else f"{v:.4g}"
 
 
-def run_training(model, datasets, sources, config, output, resume, attrs):
-    """Train with a progress bar on stderr; print the outcome; exit 3/130 on divergence/interrupt."""
-    from mpnode.train import fit, log_path
+def run_with_progress(epochs, output, call, plot=None):
+    """Run ``call(progress=, notify=)`` (a runs.train/finetune) with a progress bar on stderr;
+    print the outcome; draw the training curves to ``plot``; exit 3 on divergence, 130 on Ctrl-C."""
+    from mpnode.train import state_path
+    from mpnode.train_log import log_path
 
     state = {"bar": None}
 
@@ -123,8 +159,9 @@ def run_training(model, datasets, sources, config, output, resume, attrs):
         if record is None:
             return ""
         window = f"  window {record['window']}" if record.get("window") is not None else ""
-        return (f"epoch {record['epoch']}  train {_fmt(record['train_loss'])}  val {_fmt(record['val_loss'])}  "
-                f"best {_fmt(record['best_val_loss'])}  lr {record['lr']:.2g}{window}")
+        return (f"epoch {record['epoch']}  train {_fmt(record['train_loss'])}  val {_fmt(record['val_loss'])} "
+                f"(nMSE {_fmt(record.get('val_nmse'))})  best {_fmt(record['best_val_loss'])}  lr {record['lr']:.2g}"
+                f"{window}")
 
     def progress(record):
         bar = state["bar"]
@@ -133,15 +170,16 @@ def run_training(model, datasets, sources, config, output, resume, attrs):
     def notify(msg):
         click.echo(("\n" if state["bar"] is not None else "") + msg, err=True)
 
-    with click.progressbar(length=max(config.epochs, 1), label="training", file=sys.stderr, item_show_func=show,
+    with click.progressbar(length=max(epochs, 1), label="training", file=sys.stderr, item_show_func=show,
                            show_eta=True) as bar:
         state["bar"] = bar
-        result = fit(model, datasets, config, output, sources=sources, resume=resume, progress=progress,
-                     notify=notify, model_attrs=attrs)
+        result = call(progress=progress, notify=notify)
     click.echo(f"{result.status}: {result.message}")
     click.echo(f"best validation loss {result.best_val_loss:.6g} at epoch {result.best_epoch} of {result.epoch}; "
                f"{result.seconds:.1f} s; learning rate now {result.lr:g}")
-    click.echo(f"wrote {output} (best model), {log_path(output)} (log), {output}.state (checkpoint for --resume)")
+    click.echo(f"wrote {output} (best model), {log_path(output)} (log), {state_path(output)} (checkpoint for --resume)")
+    if plot:
+        plot_training(output, plot)
     if result.status == "diverged":
         raise NumericalError(result.message)
     if result.status == "interrupted":
@@ -150,32 +188,48 @@ def run_training(model, datasets, sources, config, output, resume, attrs):
     return result
 
 
-def validation_report(result, datasets, sources):
-    """Normalised MSE of the best model on each file's validation split (one line per file)."""
-    from mpnode.evaluate import evaluate, subset
+def plot_training(output, plot):
+    """The training curves of the run beside ``output`` (its whole log, resumed parts included)."""
+    from mpnode.model import Model
+    from mpnode.plot import plot_training as draw
+    from mpnode.train_log import log_path
 
-    lines = []
-    for traj, src, (_, val) in zip(datasets, sources, result.split):
-        if len(val):
-            r = evaluate(result.model, subset(traj, val), source=src)
-            lines.append(f"validation normalised MSE on {src} ({len(val)} trajectories): mean over steps "
-                         f"{r.nmse:.4g}, last step {r.nmse_last:.4g}")
-    return "\n".join(lines)
+    loss = Model.load(output).attrs.get("loss") if os.path.exists(output) else None
+    draw(log_path(output), plot, loss=loss, title=os.path.basename(output))
+    click.echo(f"wrote {plot} (training curves)")
+
+
+def print_validation(result, datasets, sources):
+    from mpnode.runs import validation_errors
+
+    for src, n, mean, last in validation_errors(result, datasets, sources):
+        click.echo(f"validation normalised MSE on {src} ({n} trajectories): mean over steps {mean:.4g}, "
+                   f"last step {last:.4g}")
 
 
 @main.command("train")
 @click.argument("data", nargs=-1, required=True)
-@click.option("--message-dim", type=click.IntRange(min=0), default=3, show_default=True, help="Message size dm.")
+@click.option("--model", "kind", type=click.Choice(["mpnode", "l2s", "node"]), default="mpnode", show_default=True,
+              help="mpnode: one module per node with learned messages (runs on any graph); l2s: the paper's "
+                   "graph-network ODE baseline (any graph); node: one neural ODE for the whole system (its N only).")
+@click.option("--message-dim", type=click.IntRange(min=0), default=3, show_default=True,
+              help="Message size dm (mpnode only).")
 @click.option("--hidden", type=click.IntRange(min=1), default=32, show_default=True, help="Hidden width H.")
+@click.option("--aggregate", "aggregation", type=click.Choice(["mean", "sum", "scaled"]),
+              help="How a node combines what its neighbours send: mean (the paper's), sum, or scaled (the sum over "
+                   "the training graphs' mean in-degree).  Default: mean (mpnode), sum (l2s).")
 @click.option("--zero-messages", is_flag=True, help="Clamp messages to 0 (the paper's ablation).")
 @click.option("--self-messages", is_flag=True,
-              help="Every node also hears its own message (the seed code's 'full' graph for Lorenz).")
+              help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")
 @click.option("--dtype", type=click.Choice(["float32", "float64"]), default="float32", show_default=True)
+@click.option("--recipe", type=click.Choice(["auto", "paper"]), default="auto", show_default=True,
+              help="Settings for what you leave unset: auto (the best we measured for the data's system: see the "
+                   "README's recipe table) or paper (the MP-NODE paper's: mean aggregation, plateau schedule).")
 @click.option("--trajectories", type=click.IntRange(min=2), default=SCENE_TRAJECTORIES, show_default=True,
               help="Only when DATA is a scene: trajectories to generate.")
 @training_options
-def train_cmd(data, message_dim, hidden, zero_messages, self_messages, dtype, trajectories, **o):
-    """Learn an MP-NODE from trajectory files DATA... (same dx, du and dt; graphs and N may differ).
+def train_cmd(data, trajectories, recipe, **o):
+    """Learn a model from trajectory files DATA... (same dx, du and dt; graphs and N may differ).
 
     DATA may instead be one scene (a built-in name such as coupled_pendulum, or a
     .toml file): its data are generated beside the model (OUTPUT.data.h5, --trajectories
@@ -184,8 +238,9 @@ def train_cmd(data, message_dim, hidden, zero_messages, self_messages, dtype, tr
 
     Normalisation (z-score per state dimension) is fitted on the training split only
     and stored in the model.  Beside OUTPUT: OUTPUT.log.jsonl (one JSON line per epoch:
-    losses, mean and max gradient norm, learning rate, window length and curriculum
-    stage; each line written whole by one write, so a killed run leaves a readable log)
+    losses, the validation normalised MSE, mean and max gradient norm, learning rate,
+    window length and curriculum stage; each line written whole by one write, so a
+    killed run leaves a readable log)
     and OUTPUT.state (checkpoint for --resume; also after a kill -9, from the last
     checkpoint).
 
@@ -194,48 +249,39 @@ def train_cmd(data, message_dim, hidden, zero_messages, self_messages, dtype, tr
     Exit status: 0 trained; 2 bad input; 3 training diverged (the best finite model is
     kept); 130 interrupted (continue with --resume).
     """
-    import numpy as np
+    from mpnode import runs
 
-    from mpnode.model import Model
-
-    output = o["output"]
-    _check_output(output)
-    scene = None
-    if len(data) == 1 and not os.path.exists(data[0]):
-        from mpnode.data_gen import BUILTIN
-
-        if data[0] in BUILTIN or data[0].endswith(".toml"):
-            scene = data[0]
-        else:
-            raise InputError(data[0], "file", "does not exist and is not a built-in scene",
-                             "trajectory files, or one scene name (see `mpnode scenes`)")
+    output, plot = o["output"], o["plot"]
+    scene = _scene_of(data)
+    if scene is None:
+        check_outputs(output, data, plot=plot)
+    else:
+        data = (output + ".data.h5",)
+        check_outputs(output, [scene], data[0], plot=plot)
+        if not (o["resume"] and os.path.exists(data[0])):
+            _generate(scene, data[0], trajectories, seed=o["seed"])
+    options = given_options(o)
+    if scene is not None and o["time_limit"] is None:
+        options["time_limit"] = runs.parse_duration(SCENE_TIME_LIMIT)
+    datasets = runs.read_all(data)
+    resume = o["resume"]
+    result = run_with_progress(o["epochs"], output, lambda **kw: runs.train(
+        data, output, options, recipe_name=recipe, resume=resume, datasets=datasets, **kw), plot)
+    print_validation(result, datasets, list(data))
     if scene is not None:
-        path = output + ".data.h5"
-        if not (o["resume"] and os.path.exists(path)):
-            _generate(scene, path, trajectories, seed=o["seed"])
-        data = (path,)
-        if o["time_limit"] is None:
-            o["time_limit"] = SCENE_TIME_LIMIT
-    datasets = _read_all(data)
-    config = _config(o, "fit")
-    model = None
-    if not o["resume"]:
-        t0 = datasets[0]
-        model = Model.create(t0.state_dim, t0.control_dim, message_dim, hidden, t0.dt, o["substeps"] or 1,
-                             zero_messages, self_messages, seed=o["seed"], dtype=np.dtype(dtype))
-    attrs = {"trained_on": ";".join(os.path.abspath(p) for p in data), "system": datasets[0].system}
-    result = run_training(model, datasets, list(data), config, output, o["resume"], attrs)
-    click.echo(validation_report(result, datasets, list(data)))
-    if scene is not None:
-        from .eval_cmd import format_report, run_eval
+        _evaluate_on_fresh(scene, result.model, output, o["seed"] + 1)
 
-        with tempfile.TemporaryDirectory() as tmp:
-            test = os.path.join(tmp, "test.h5")
-            _generate(scene, test, SCENE_EVAL_TRAJECTORIES, seed=o["seed"] + 1)
-            traj = _read_all([test])[0]
-            _, report = run_eval(result.model, traj, f"{SCENE_EVAL_TRAJECTORIES} fresh {scene} trajectories "
-                                 f"(seed {o['seed'] + 1})")
-        click.echo(format_report(report, output))
+
+def _scene_of(data):
+    """The scene DATA names (one argument, not a file), or None for trajectory files."""
+    if len(data) != 1 or os.path.exists(data[0]):
+        return None
+    from mpnode.data_gen import BUILTIN
+
+    if data[0] in BUILTIN or data[0].endswith(".toml"):
+        return data[0]
+    raise InputError(data[0], "file", "does not exist and is not a built-in scene",
+                     "trajectory files, or one scene name (see `mpnode scenes`)")
 
 
 def _generate(scene, path, trajectories, seed):
@@ -251,6 +297,19 @@ def _generate(scene, path, trajectories, seed):
     click.echo(f"generated {path}: {s.name}, B={s.trajectories}, T={s.horizon}, seed {seed}")
 
 
+def _evaluate_on_fresh(scene, model, output, seed):
+    from mpnode.data import read_trajectories
+
+    from .eval_cmd import evaluate_and_report, format_report
+
+    with tempfile.TemporaryDirectory() as tmp:
+        test = os.path.join(tmp, "test.h5")
+        _generate(scene, test, SCENE_EVAL_TRAJECTORIES, seed=seed)
+        _, report = evaluate_and_report(model, read_trajectories(test),
+                                        f"{SCENE_EVAL_TRAJECTORIES} fresh {scene} trajectories (seed {seed})")
+    click.echo(format_report(report, output))
+
+
 @main.command("finetune")
 @click.argument("model_file", metavar="MODEL", type=click.Path(dir_okay=False))
 @click.argument("data", nargs=-1, required=True, type=click.Path(dir_okay=False))
@@ -260,22 +319,17 @@ def _generate(scene, path, trajectories, seed):
 def finetune_cmd(model_file, data, refit_norm, **o):
     """Continue training MODEL on DATA... and write the result to OUTPUT.
 
-    Starts from exactly MODEL's weights (its dimensions, dt, message settings and, by
-    default, its normalisation), e.g. a Lorenz3 model becomes a Lorenz10 model with a
+    Starts from exactly MODEL's weights (its kind, dimensions, dt, message settings and,
+    by default, its normalisation), e.g. a Lorenz3 model becomes a Lorenz10 model with a
     few dozen Lorenz10 trajectories.  Same flags and files as `mpnode train`.
     """
-    from mpnode.model import Model
+    from mpnode import runs
 
     output = o["output"]
-    _check_output(output)
-    datasets = _read_all(data)
-    config = _config(o, "fit" if refit_norm else "keep")
-    model = None
-    if not o["resume"]:
-        model = Model.load(model_file)
-        if o["substeps"]:
-            model = model.with_spec(substeps=o["substeps"])
-    attrs = {"trained_on": ";".join(os.path.abspath(p) for p in data), "finetuned_from": os.path.abspath(model_file),
-             "system": datasets[0].system}
-    result = run_training(model, datasets, list(data), config, output, o["resume"], attrs)
-    click.echo(validation_report(result, datasets, list(data)))
+    check_outputs(output, [model_file, *data], plot=o["plot"])
+    datasets = runs.read_all(data)
+    resume, options = o["resume"], given_options(o)
+    result = run_with_progress(o["epochs"], output, lambda **kw: runs.finetune(
+        model_file, data, output, options, refit_norm=refit_norm, resume=resume, datasets=datasets, **kw),
+        o["plot"])
+    print_validation(result, datasets, list(data))

@@ -6,5 +6,6 @@ This package knows physics and nothing of learning.  Typical use::
     traj = generate(load_scene("lorenz3"))          # an mpnode.data.Trajectories
 """
 from .scenes import BUILTIN, Scene, load_scene, read_scene  # noqa: F401
+from .initial import initial_states, trajectory_rng  # noqa: F401
 from .simulate import generate, integrate, simulate  # noqa: F401
 from .systems import SYSTEMS, make_rhs  # noqa: F401

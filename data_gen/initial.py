@@ -41,3 +41,26 @@ def get_sampler(name, system, n_nodes, source, field):
     if name == "hotspots" and math.isqrt(n_nodes) ** 2 != n_nodes:
         raise InputError(source, field, f"hotspots needs a square grid but N = {n_nodes}", "N a perfect square")
     return SAMPLERS[name]
+
+
+def trajectory_rng(seed, b):
+    """The generator of trajectory b: SeedSequence(seed, spawn_key=(b,)) -- trajectory b's
+    randomness depends on the seed and b alone (not on workers, chunks or B)."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(b,)))
+
+
+def initial_states(scene):
+    """(x0 (B, N, dx), graphs, graph_index (B,)) of ``scene``, drawn exactly as `generate` draws
+    them: trajectory b from `trajectory_rng` (seed, b) with the scene's sampler, on graph b mod G."""
+    from .systems import get_system
+
+    system = get_system(scene.system)
+    if system.generator is not None:
+        raise InputError(scene.name, "system", f"{system.name} is a closed-loop system whose initial states come "
+                         "with its controls", "a scene of a system without controls")
+    graphs = scene.graph.build()
+    sampler = get_sampler(scene.initial, system, scene.graph.n_nodes, scene.name, "initial")
+    gi = np.arange(scene.trajectories) % len(graphs)
+    x0 = np.stack([sampler(trajectory_rng(scene.seed, b), system, graphs[gi[b]].n_nodes)
+                   for b in range(scene.trajectories)])
+    return x0, graphs, gi

@@ -31,6 +31,9 @@ from mpnode.errors import InputError, NumericalError
 
 SYSTEM = "quadrotor_load"
 STATE_DIM = 13
+#: the node state's dimensions: position, attitude quaternion (body to world), velocity, body rates
+STATE_NAMES = ("r_x (m)", "r_y (m)", "r_z (m)", "q_w", "q_x", "q_y", "q_z", "v_x (m/s)", "v_y (m/s)", "v_z (m/s)",
+               "omega_x (rad/s)", "omega_y (rad/s)", "omega_z (rad/s)")
 CONTROL_DIM = 4
 LOAD_DIM = 6
 
@@ -589,7 +592,7 @@ def generate(scene, *, workers=2, max_tries=10, progress=None):
                  controller_rate=1.0 / scene.dt, control_hold="zero-order hold over dt; u reproduces x exactly",
                  integration="solve_ivp one saved step at a time, quaternions renormalised at every step",
                  evaluations_mean=float(out["evaluations"].mean()),
-                 min_tension=float(out["min_tension"].min()),
+                 min_tension=float(out["min_tension"].min()), state_names=list(STATE_NAMES),
                  **{f"ctrl_{k}": (np.asarray(v, float) if isinstance(v, tuple) else v) for k, v in CONTROL.items()},
                  **{f"ctrl_{k}_nominal": v for k, v in probe.gains().items()},
                  **scene.graph.describe())

@@ -73,11 +73,14 @@ def _lorenz(k, coupling, level):
                  "lorenz", GraphSpec("complete", k), {"coupling": coupling})
 
 
-def _gene(n, kind, seeds=(1,)):
+def _gene(n, kind, seeds=(1,), initial="uniform"):
     multi = len(seeds) > 1
     graphs = f"{len(seeds)} {kind.upper()} graphs (seeds {seeds[0]}..{seeds[-1]})" if multi else f"{kind.upper()} graph"
-    return Scene(f"gene{n}_{kind}" + ("_multi" if multi else ""),
-                 f"Michaelis-Menten gene regulation on {n} nodes, {graphs}", "gene", gene_graph(kind, n, seeds))
+    hot = initial == "hotspots"
+    start = ", starting from three hot spots on the grid (the paper's NDCN setup)" if hot else ""
+    return Scene(f"gene{n}_{kind}" + ("_multi" if multi else "") + ("_hot" if hot else ""),
+                 f"Michaelis-Menten gene regulation on {n} nodes, {graphs}{start}", "gene",
+                 gene_graph(kind, n, seeds), initial=initial)
 
 
 def _kuramoto(kind):
@@ -100,6 +103,8 @@ BUILTIN = {
         _lorenz(10, 1.0, "_medium"), _lorenz(10, 5.0, "_high"),
         *(_gene(n, kind) for n in (16, 64) for kind in ("er", "ba", "ws")),
         _gene(16, "ba", seeds=(1, 2, 3, 4, 5)),
+        *(_gene(n, kind, initial="hotspots") for n in (16, 64) for kind in ("er", "ba", "ws")),
+        _gene(16, "ba", seeds=(1, 2, 3, 4, 5), initial="hotspots"),
         *(_kuramoto(kind) for kind in ("er", "ba", "ws")),
         *(_quad(n) for n in (3, 6)),
     ]

@@ -55,7 +55,7 @@ class StiffnessDetected(NumericalError):
 def generate(scene, *, workers=2, max_tries=10, progress=None):
     """The trajectories of ``scene``, with all it takes to re-integrate them (Trajectories).
 
-    Root attributes: the system's scalar parameters (spec names), seed, system_seed,
+    Root attributes: the system's scalar parameters (spec names), state_names, seed, system_seed,
     integrator, rtol, atol, scene, description, initial, redrawn, and what graphs were built;
     `params/`: the drawn arrays (lorenz H, kuramoto omega).  The graph of trajectory b is
     graph b mod G.  Raises InputError for a bad scene, NumericalError if trajectories keep failing.
@@ -87,6 +87,8 @@ def generate(scene, *, workers=2, max_tries=10, progress=None):
         aux["integrator_fallback"] = fallback.astype(np.int8)
     if scene.initial == "uniform":
         attrs.update(initial_low=np.asarray(system.low), initial_high=np.asarray(system.high))
+    if system.state_names:
+        attrs["state_names"] = list(system.state_names)
     return Trajectories(x=x, graphs=graphs, dt=scene.dt, system=system.name,
                         graph_index=graph_index if len(graphs) > 1 else None, attrs=attrs, params=drawn, aux=aux)
 

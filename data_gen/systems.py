@@ -113,6 +113,8 @@ class System:
     samplers : initial-state samplers that make sense for it (see initial.py)
     generator : closed-loop systems only (quadrotor_load): generator(scene, workers=, max_tries=,
         progress=) -> Trajectories, which then owns initial states, controls and aux data
+    state_names : one name (with its unit where there is one) per state dimension; files
+        carry them as the attribute ``state_names`` and the figures label their axes with them
     """
 
     name: str
@@ -127,6 +129,7 @@ class System:
     complete: bool = False
     samplers: tuple = ("uniform",)
     generator: Callable = None
+    state_names: tuple = ()
 
     def check_graph(self, graph, source, field):
         """Raise InputError unless ``graph`` is one this system's physics is defined on."""
@@ -164,21 +167,23 @@ SYSTEMS = {
     for s in [
         System("coupled_pendulum", 2, dict(m=1.0, l=1.5, k=2.0, g=9.81),
                low=(-np.pi / 4, -0.5), high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_pendulum,
-               guard=pendulum_guard, n_nodes=2, complete=True),
+               guard=pendulum_guard, n_nodes=2, complete=True,
+               state_names=("angle (rad)", "angular velocity (rad/s)")),
         System("lorenz", 3, dict(sigma=10.0, rho=28.0, beta=8.0 / 3.0, coupling=0.01),
                low=(-1.0,) * 3, high=(1.0,) * 3,
                draw=lambda p, n, rng: {"H": lorenz_coupling(n, p["coupling"], rng)}, rhs=_lorenz,
-               complete=True),
+               complete=True, state_names=("x", "y", "z")),
         System("gene", 1, dict(b=1.0, f=1.0, h=2.0),
                low=(0.0,), high=(50.0,), draw=_nothing_drawn, rhs=_gene,
-               samplers=("uniform", "hotspots")),
+               samplers=("uniform", "hotspots"), state_names=("expression level",)),
         System("kuramoto", 3, dict(K=1.0 / 3.0),
                low=(-1.0,) * 3, high=(1.0,) * 3,
-               draw=lambda p, n, rng: {"omega": kuramoto_frequencies(rng)}, rhs=_kuramoto),
+               draw=lambda p, n, rng: {"omega": kuramoto_frequencies(rng)}, rhs=_kuramoto,
+               state_names=("phase 1 (rad)", "phase 2 (rad)", "phase 3 (rad)")),
         # rhs: f(t, y, F) on the state INCLUDING the load, thrusts F held (see quadrotor.py)
         System(quadrotor.SYSTEM, quadrotor.STATE_DIM, dict(quadrotor.PARAMS), low=(), high=(),
                draw=quadrotor.draw_params, rhs=quadrotor.make_rhs, complete=True,
-               samplers=("equilibrium",), generator=quadrotor.generate),
+               samplers=("equilibrium",), generator=quadrotor.generate, state_names=quadrotor.STATE_NAMES),
     ]
 }
 

@@ -1,4 +1,4 @@
-"""Trajectory files (../shared/spec/trajectory-format.md, version 1).
+"""Trajectory files (docs/trajectory-format.md, version 1).
 
 `Trajectories` is the in-memory form every part of mpnode passes around; the
 reader validates every rule of the format and raises `InputError` naming the
@@ -15,7 +15,7 @@ import numpy as np
 
 from .atomic import atomic_path
 from .errors import InputError
-from .graph import Graph, check_csr
+from .graph import Graph, as_graph, check_csr, is_networkx
 
 
 @dataclass
@@ -70,6 +70,79 @@ class Trajectories:
     def graph_of(self, b):
         """The Graph trajectory ``b`` ran on."""
         return self.graphs[int(self.graph_index[b])]
+
+    @classmethod
+    def from_arrays(cls, x, graph, dt, system, u=None, graph_index=None, directed=False, attrs=None,
+                    params=None, aux=None, source="arrays"):
+        """Trajectories from plain arrays (your own simulator's or experiment's), validated.
+
+        x : (B, T+1, N, dx) states, x[:, :, i] node i;  u : (B, T, N, du) controls or None;
+        graph : one graph for every trajectory -- an mpnode.Graph, a networkx graph or an
+        edge list of (sender, receiver) pairs (E, 2), undirected unless ``directed`` -- or a
+        list of them with ``graph_index`` (B,) naming each trajectory's;  dt : time between
+        saved states;  system : a name for the system;  attrs : further root attributes
+        (``state_names``: one name per state dimension, used by the figures).
+        Integer arrays become float64.  Raises InputError naming ``source`` and the field.
+        """
+        x, u = _float_array(x, "x", source), None if u is None else _float_array(u, "u", source)
+        if x.ndim != 4:
+            raise InputError(source, "x", f"has shape {x.shape}",
+                             "a 4-D array [B, T+1, N, dx] (one trajectory: x[None])")
+        specs, field = _graph_specs(graph, source)
+        graphs = [as_graph(g, x.shape[2], directed, source, field(k)) for k, g in enumerate(specs)]
+        if graph_index is None and len(graphs) > 1:
+            raise InputError(source, "graph_index", f"is missing, but there are {len(graphs)} graphs",
+                             f"an integer array of shape ({x.shape[0]},) naming the graph of each trajectory")
+        if graph_index is not None:
+            graph_index = np.asarray(graph_index)
+            if graph_index.dtype.kind == "f" and np.all(graph_index == np.round(graph_index)):
+                graph_index = graph_index.astype(np.int64)
+        traj = cls(x=x, graphs=graphs, dt=_plain_scalar(dt), system=system, u=u, graph_index=graph_index,
+                   attrs=dict(attrs or {}), params=dict(params or {}), aux=dict(aux or {}))
+        return validate_trajectories(traj, source)
+
+
+def _float_array(a, name, source):
+    """``a`` as an ndarray; integers (and float16) become float64, other dtypes are left to the checker."""
+    try:
+        a = np.asarray(a)
+    except ValueError as e:  # ragged nested lists
+        raise InputError(source, name, f"is not a rectangular array ({_one_line(e)})",
+                         "one number per entry of a regular grid") from None
+    if a.dtype.kind in "iu" or (a.dtype.kind == "f" and a.dtype.itemsize < 4):
+        a = a.astype(np.float64)
+    return a
+
+
+def _plain_scalar(v):
+    """A one-element array (e.g. loaded from a file) as its Python number; anything else unchanged."""
+    if isinstance(v, np.ndarray) and v.size == 1 and v.dtype.kind in "iuf":
+        return v.item()
+    return v
+
+
+def _graph_specs(graph, source):
+    """(list of graph specs, field name of spec k): one graph, or a list of them."""
+    if graph is None:
+        raise InputError(source, "graph", "is missing",
+                         "an edge list of (sender, receiver) pairs, an mpnode.Graph or a networkx graph")
+    single = (lambda k: "graph")
+    if isinstance(graph, Graph) or is_networkx(graph):
+        return [graph], single
+    if isinstance(graph, np.ndarray):
+        return (list(graph), (lambda k: f"graph[{k}]")) if graph.ndim == 3 else ([graph], single)
+    if isinstance(graph, (list, tuple)):
+        if not graph:
+            raise InputError(source, "graph", "is an empty list",
+                             "an edge list (for a graph without edges: np.zeros((0, 2), int)) or a list of graphs")
+        if not any(isinstance(g, Graph) or is_networkx(g) for g in graph):
+            try:
+                if np.asarray(graph).ndim == 2:  # a list of pairs: one edge list
+                    return [graph], single
+            except ValueError:  # ragged: a list of edge lists of different lengths
+                pass
+        return list(graph), (lambda k: f"graph[{k}]")
+    return [graph], single
 
 
 # ---- validation (shared by reader and writer) -----------------------------
@@ -138,7 +211,21 @@ def validate_trajectories(traj, source):
         if key in RESERVED_ATTRS:
             raise InputError(source, key, "is set in attrs, but it is a format attribute",
                              "dt and system as Trajectories fields; format and format_version are written by mpnode")
+    _check_names(traj.attrs.get("state_names"), "state_names", x.shape[3], source)
+    if traj.u is not None:
+        _check_names(traj.attrs.get("control_names"), "control_names", np.shape(traj.u)[3], source)
     return traj
+
+
+def _check_names(names, key, size, source):
+    """Optional attribute ``key``: one non-empty string per state (control) dimension."""
+    if names is None:
+        return
+    names = [names] if isinstance(names, str) else names
+    ok = isinstance(names, (list, tuple, np.ndarray)) and len(names) == size \
+        and all(isinstance(n, str) and n.strip() for n in names)
+    if not ok:
+        raise InputError(source, key, f"is {names!r}", f"a list of {size} non-empty strings, one per dimension")
 
 
 def _check_float_values(a, name, source):
@@ -166,7 +253,7 @@ def read_trajectories(path):
         f = h5py.File(source, "r")
     except FileNotFoundError:
         raise InputError(source, "file", "does not exist", "an existing trajectory file") from None
-    except _H5_DAMAGE as e:
+    except H5_DAMAGE as e:
         raise InputError(source, "file", f"cannot be opened as HDF5 ({_one_line(e)})",
                          "an HDF5 trajectory file (not truncated, not another format)") from None
     try:
@@ -174,7 +261,7 @@ def read_trajectories(path):
             traj = _read_open_file(f, source)
     except InputError:
         raise
-    except _H5_DAMAGE as e:  # damage that only shows once data is read
+    except H5_DAMAGE as e:  # damage that only shows once data is read
         raise InputError(source, "file", f"cannot be read ({_one_line(e)})", "an intact HDF5 file") from None
     validate_trajectories(traj, source)
     traj.dt = float(traj.dt)
@@ -182,10 +269,27 @@ def read_trajectories(path):
     return traj
 
 
+def file_format(path):
+    """The root attribute ``format`` of an HDF5 file ("mpnode.trajectories", "mpnode.model", ...),
+    or None when it has none; InputError when the file cannot be opened."""
+    import h5py
+
+    source = os.fspath(path)
+    try:
+        with h5py.File(source, "r") as f:
+            fmt = plain_attr(f.attrs.get("format"))
+    except FileNotFoundError:
+        raise InputError(source, "file", "does not exist", "an existing mpnode file") from None
+    except H5_DAMAGE as e:
+        raise InputError(source, "file", f"cannot be opened as HDF5 ({_one_line(e)})",
+                         "an HDF5 file (not truncated, not another format)") from None
+    return fmt if isinstance(fmt, str) else None
+
+
 #: what h5py raises for damaged bytes: OSError (unreadable blocks), RuntimeError (corrupt headers,
 #: e.g. "wrong version number in dataspace message"), KeyError (an object that cannot be opened),
 #: TypeError/ValueError (damaged datatype messages)
-_H5_DAMAGE = (OSError, RuntimeError, KeyError, TypeError, ValueError)  # + "Unknown string encoding", ...
+H5_DAMAGE = (OSError, RuntimeError, KeyError, TypeError, ValueError)  # + "Unknown string encoding", ...
 
 
 def _read_open_file(f, source):
@@ -318,16 +422,37 @@ def _one_line(e):
 
 # ---- writing --------------------------------------------------------------
 
-def write_trajectories(path, traj):
-    """Validate ``traj`` and write it to ``path`` atomically: the complete file or nothing.
+def write_trajectories(path, traj=None, *, x=None, u=None, graph=None, graph_index=None, dt=None, system=None,
+                       directed=False, attrs=None, params=None, aux=None):
+    """Validate and write trajectories to ``path`` atomically: the complete file or nothing.
 
-    graph_index is stored only when there are several graphs (the spec omits it for one);
-    graphs whose ``self_loops`` is True get the attribute ``self_loops = 1``.
+    Either a `Trajectories` (``write_trajectories(path, traj)``) or plain arrays, e.g.
+    ``write_trajectories(path, x=x, graph=edges, dt=0.05, system="springs")``: the keywords
+    are those of `Trajectories.from_arrays` (x (B, T+1, N, dx); u (B, T, N, du); graph an
+    mpnode.Graph, a networkx graph, an edge list of (sender, receiver) pairs -- undirected
+    unless ``directed`` -- or a list of them with graph_index (B,)).  Every problem is an
+    InputError naming ``path`` and the field.  graph_index is stored only when there are
+    several graphs (the format omits it for one); graphs whose ``self_loops`` is True get the
+    attribute ``self_loops = 1``.
     """
     import h5py
 
     path = os.fspath(path)
-    validate_trajectories(traj, path)
+    arrays = dict(x=x, u=u, graph=graph, graph_index=graph_index, dt=dt, system=system, attrs=attrs,
+                  params=params, aux=aux)
+    if isinstance(traj, Trajectories):
+        given = [k for k, v in arrays.items() if v is not None]
+        if given or directed:
+            raise TypeError(f"write_trajectories: give a Trajectories or arrays, not both ({given or ['directed']})")
+        validate_trajectories(traj, path)
+    else:
+        if traj is not None:  # write_trajectories(path, x_array, graph=..., ...)
+            if x is not None:
+                raise TypeError("write_trajectories: x given twice (positionally and as x=)")
+            arrays["x"] = traj
+        if arrays["x"] is None:
+            raise TypeError("write_trajectories needs a Trajectories or the array x=")
+        traj = Trajectories.from_arrays(**arrays, directed=directed, source=path)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs.update(format=FORMAT_NAME, format_version=FORMAT_VERSION, dt=float(traj.dt), system=traj.system)
         f["x"] = np.asarray(traj.x)

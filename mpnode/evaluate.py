@@ -1,27 +1,12 @@
-"""Evaluating a model on a trajectory file: roll out from every initial state, measure error and speed.
+"""Using a model: evaluate it on a trajectory file, or simulate new initial states.
 
-Error is the normalised MSE of the seed paper: the squared error of every state
-coordinate divided by the variance of that state dimension over the file's true
-states (all trajectories, steps and nodes), averaged over trajectories, nodes and
-dimensions -- per step, and over steps 1..T.  A value of 1 means "no better than
-predicting the file's mean"; 0 is perfect.
-
-A prediction that becomes non-finite, or leaves a box ten times as wide as the data
-(per dimension: [mid - 5 r, mid + 5 r] with mid and r the midpoint and range of the
-true states), counts as blown up; its error from that step on is infinite.
-
-Averages hide where a chaotic prediction (Lorenz) parts from the truth, so the
-*predictable horizon* is reported too: per trajectory, the first step t >= 1 at which
-its own normalised MSE (mean over nodes and dimensions, same variances as above)
-exceeds a threshold (0.1 and 1.0 by default; a blown-up step exceeds every threshold),
-and per file the lower median of that step over trajectories (in steps and in time,
-step * dt).  A trajectory that never exceeds the threshold counts as "beyond T"; if at
-least half do, the median is reported as None ("beyond the horizon").
-
-With ``substeps="auto"`` the number of RK4 substeps is chosen by step doubling
-(`mpnode.stepsize.choose_substeps`); after the rollout `mpnode.stepsize.stability_check`
-says whether a blow-up was caused by too large an RK4 step (``step_too_large``).
-This module knows nothing of any particular system.
+`evaluate` rolls a model out from every initial state of a file and measures the error
+(mpnode.metrics: normalised MSE per step and overall, blow-ups, predictable horizon) and
+the speed; `simulate` rolls it out where there is no truth, with a blow-up test against
+the training data's range.  Both take ``substeps="auto"`` (the RK4 substeps chosen by
+step doubling, mpnode.stepsize) and report afterwards whether a blow-up was caused by
+too large an RK4 step (``stepsize.stability_check``).  This module knows nothing of any
+particular system; timing the reference simulator is `mpnode.data_gen.reference`'s job.
 """
 import math
 import time
@@ -30,11 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import stepsize
+from .batches import check_data
 from .data import Trajectories
 from .errors import NumericalError
-from .train import check_data
-
-HORIZON_THRESHOLDS = (0.1, 1.0)
+from .metrics import HORIZON_THRESHOLDS, blow_up_mask, data_box, nmse_per_step, predictable_horizon
 
 
 @dataclass
@@ -83,6 +67,18 @@ class EvalResult:
                 "stability": self.stability, "predictable_horizon": self.horizons}
 
 
+@dataclass
+class SimulationResult:
+    """predictions : ndarray, shape (B, T+1, N, dx), data units;  seconds : rollout wall time;
+    substeps, substeps_report, stability : as in EvalResult."""
+
+    predictions: np.ndarray
+    seconds: float
+    substeps: int
+    substeps_report: dict
+    stability: dict
+
+
 def rollout_all(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384):
     """Roll the model out from every initial state, in chunks of about ``max_nodes`` nodes.
 
@@ -102,73 +98,21 @@ def rollout_all(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384):
     return out
 
 
-def data_box(truth):
-    """(mid, r): per-dimension midpoint and range of ``truth`` (..., dx), r floored above 0."""
-    d = truth.shape[-1]
-    flat = truth.reshape(-1, d)
-    lo, hi = flat.min(axis=0), flat.max(axis=0)
-    mid, r = (lo + hi) / 2, hi - lo
-    return mid, np.maximum(r, np.maximum(1e-12, 1e-6 * np.abs(mid)))
+def _per_trajectory(graphs, graph_index):
+    """The graph argument of Model.rollout for all B trajectories: one Graph or a list of B."""
+    return graphs[0] if len(graphs) == 1 else [graphs[int(i)] for i in graph_index]
 
 
-def blow_up_mask(pred, truth=None, box=None):
-    """Boolean (B, T+1): prediction non-finite or outside ten times the data's box at that step.
-
-    The box is ``data_box(truth)`` unless ``box`` = (mid, r) is given.
-    """
-    mid, r = data_box(truth) if box is None else box
-    with np.errstate(invalid="ignore", over="ignore"):
-        outside = ~(np.abs(pred - mid) <= 5 * r)  # NaN compares False -> outside
-    bad = outside.any(axis=(2, 3))
-    return np.logical_or.accumulate(bad, axis=1)  # once blown up, stays blown up
-
-
-def nmse_per_step(pred, truth, bad=None):
-    """Normalised MSE per step, shape (T+1,): squared error / per-dimension variance of ``truth``.
-
-    Steps where some trajectory has blown up (``bad``) are infinite.
-    """
-    d = truth.shape[-1]
-    var = truth.reshape(-1, d).var(axis=0)
-    var = np.where(var > 0, var, 1.0)
-    with np.errstate(all="ignore"):
-        err = ((pred.astype(np.float64) - truth) ** 2 / var).mean(axis=(0, 2, 3))
-    if bad is not None:
-        err[bad.any(axis=0)] = np.inf
-    err[~np.isfinite(err)] = np.inf
-    return err
-
-
-def predictable_horizon(pred, truth, dt, thresholds=HORIZON_THRESHOLDS, bad=None):
-    """Where predictions part from the truth: per threshold, the first step each exceeds it.
-
-    pred, truth : ndarray, shape (B, T+1, N, dx);  bad : (B, T+1) blow-up mask or None.
-    The error of trajectory b at step t is its normalised MSE (squared error / the
-    per-dimension variance of ``truth``, mean over nodes and dimensions); blown-up or
-    non-finite steps are infinite.  Returns {str(threshold): {"median_step", "median_time",
-    "beyond_horizon" (trajectories never above it), "first_step" (per trajectory, None if
-    never)}}; the median is the lower median with "never" counted as beyond T, None when
-    that falls beyond T.
-    """
-    d = truth.shape[-1]
-    var = truth.reshape(-1, d).var(axis=0)
-    var = np.where(var > 0, var, 1.0)
-    with np.errstate(all="ignore"):
-        err = ((pred.astype(np.float64) - truth) ** 2 / var).mean(axis=(2, 3))  # (B, T+1)
-    err[~np.isfinite(err)] = np.inf
-    if bad is not None:
-        err[bad] = np.inf
-    b, t1 = err.shape
-    out = {}
-    for thr in thresholds:
-        above = err[:, 1:] > thr
-        first = np.where(above.any(axis=1), above.argmax(axis=1) + 1, t1)  # t1 = "beyond T"
-        med = int(np.sort(first)[(b - 1) // 2]) if b else t1
-        out[f"{thr:g}"] = {"median_step": med if med < t1 else None,
-                           "median_time": med * float(dt) if med < t1 else None,
-                           "beyond_horizon": int((first >= t1).sum()),
-                           "first_step": [int(f) if f < t1 else None for f in first]}
-    return out
+def with_substeps(model, substeps, x0, graphs, graph_index, u, horizon, tol, max_substeps):
+    """The model with the substeps asked for: None (its own), an int, or "auto" (step doubling
+    on these initial states).  Returns (model, the auto report or None)."""
+    if substeps == "auto":
+        chosen, report = stepsize.choose_substeps(model, x0, _per_trajectory(graphs, graph_index), u, tol,
+                                                  max_substeps=max_substeps, horizon=horizon)
+        return model.with_spec(substeps=chosen), report
+    if substeps is not None:
+        return model.with_spec(substeps=int(substeps)), None
+    return model, None
 
 
 def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=16384, substeps=None,
@@ -176,10 +120,9 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
              horizon_thresholds=HORIZON_THRESHOLDS, check_stability=True):
     """Roll ``model`` out on every trajectory of ``traj`` and measure error and speed (EvalResult).
 
-    Raises InputError (naming ``source``) when dx/du differ, or dt differs and is not allowed.
-    With ``allow_dt_mismatch`` the model is rolled out with the file's dt.
-    substeps : None (the model's own), an int, or "auto" (`stepsize.choose_substeps` with
-        ``substeps_tol`` and ``max_substeps`` on the file's initial states).
+    Raises InputError (naming ``source``) when dx/du (or a node model's N) differ, or dt
+    differs and is not allowed; with ``allow_dt_mismatch`` the model runs at the file's dt.
+    substeps : None (the model's own), an int, or "auto" (module docstring).
     check_stability : run `stepsize.stability_check` after the rollout (result.stability).
     """
     check_data(model, [traj], [source], allow_dt_mismatch=allow_dt_mismatch)
@@ -189,14 +132,8 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     x = np.asarray(traj.x, dtype=np.float64)
     b, t1, n, dx = x.shape
     u = None if traj.u is None else np.asarray(traj.u)
-    graph_arg = traj.graphs[0] if len(traj.graphs) == 1 else [traj.graphs[int(i)] for i in traj.graph_index]
-    auto_report = None
-    if substeps == "auto":
-        chosen, auto_report = stepsize.choose_substeps(model, x[:, 0], graph_arg, u, substeps_tol,
-                                                       max_substeps=max_substeps, horizon=t1 - 1)
-        model = model.with_spec(substeps=chosen)
-    elif substeps is not None:
-        model = model.with_spec(substeps=int(substeps))
+    model, auto_report = with_substeps(model, substeps, x[:, 0], traj.graphs, traj.graph_index, u, t1 - 1,
+                                       substeps_tol, max_substeps)
     # warm-up: load the compiled kernels before timing
     rollout_all(model, x[:1, 0], traj.graphs, traj.graph_index[:1], 1, None if u is None else u[:1, :1])
     start = time.perf_counter()
@@ -206,19 +143,60 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     bad = blow_up_mask(pred, box=box)
     err = nmse_per_step(pred, x, bad)
     blown = bad.any(axis=0)
-    first_bad = int(np.argmax(blown)) if blown.any() else None
     stability = None
     if check_stability:
-        stability = stepsize.stability_check(model, x[:, 0], graph_arg, u, pred, bad, substeps_tol,
-                                             max_substeps=max_substeps, box=box)
-    horizons = predictable_horizon(pred, x, traj.dt, horizon_thresholds, bad)
-    return EvalResult(err, float(err[1:].mean()), float(err[-1]), first_bad, int(bad[:, -1].sum()), seconds,
-                      b * n * (t1 - 1) / max(seconds, 1e-12), pred, b, t1 - 1, n, model.spec.substeps,
-                      auto_report, stability, horizons)
+        stability = stepsize.stability_check(model, x[:, 0], _per_trajectory(traj.graphs, traj.graph_index), u,
+                                             pred, bad, substeps_tol, max_substeps=max_substeps, box=box)
+    return EvalResult(err, float(err[1:].mean()), float(err[-1]), int(np.argmax(blown)) if blown.any() else None,
+                      int(bad[:, -1].sum()), seconds, b * n * (t1 - 1) / max(seconds, 1e-12), pred, b, t1 - 1, n,
+                      model.spec.substeps, auto_report, stability,
+                      predictable_horizon(pred, x, traj.dt, horizon_thresholds, bad))
 
 
-def prediction_file(traj, pred, model_name, extra_attrs=None):
-    """Trajectories holding ``pred`` (B, T+1, N, dx) on ``traj``'s graphs and controls.
+def simulation_box(model, x0):
+    """(mid, r) of the blow-up test without true states: ten times this box is the training
+    data's mean +- 20 std (the model's normalisation), widened to hold the initial states x0."""
+    flat = x0.reshape(-1, x0.shape[-1])
+    lo = np.minimum(model.x_mean - 2 * model.x_std, flat.min(axis=0))
+    hi = np.maximum(model.x_mean + 2 * model.x_std, flat.max(axis=0))
+    return (lo + hi) / 2, hi - lo
+
+
+def simulate(model, x0, graphs, graph_index, horizon, u=None, substeps=None, substeps_tol=stepsize.DEFAULT_TOL,
+             max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS):
+    """Roll ``model`` out from x0 (B, N, dx) on ``graphs[graph_index[b]]`` for ``horizon`` steps.
+
+    A prediction blows up when it is non-finite or leaves ten times `simulation_box`; the
+    stability check says whether more substeps avoid that.  Returns a SimulationResult.
+    """
+    model.check_finite()
+    model, auto_report = with_substeps(model, substeps, x0, graphs, graph_index, u, horizon, substeps_tol,
+                                       max_substeps)
+    start = time.perf_counter()
+    pred = rollout_all(model, x0, graphs, graph_index, horizon, u)
+    seconds = time.perf_counter() - start
+    box = simulation_box(model, x0)
+    stability = stepsize.stability_check(model, x0, _per_trajectory(graphs, graph_index), u, pred,
+                                         blow_up_mask(pred, box=box), substeps_tol, max_substeps=max_substeps,
+                                         box=box)
+    return SimulationResult(pred, seconds, model.spec.substeps, auto_report, stability)
+
+
+def learned_seconds_per_trajectory(model, traj, k, repeats=3):
+    """Seconds per trajectory of the learned rollout of ``traj``'s first k trajectories as one
+    batch (best of ``repeats``): the number to set beside the reference simulator's."""
+    x0 = np.asarray(traj.x)[:k, 0]
+    u = None if traj.u is None else np.asarray(traj.u)[:k]
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        rollout_all(model, x0, traj.graphs, traj.graph_index[:k], traj.horizon, u)
+        best = min(best, time.perf_counter() - start)
+    return best / k
+
+
+def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, attrs=None):
+    """Trajectories holding ``pred`` (B, T+1, N, dx) on ``graphs`` (and controls ``u``).
 
     attrs say they are predictions (``predicted_by`` = model_name); raises NumericalError
     when a prediction is non-finite (the trajectory format forbids it).
@@ -227,10 +205,20 @@ def prediction_file(traj, pred, model_name, extra_attrs=None):
         b = int(np.argmax(~np.isfinite(pred).all(axis=(1, 2, 3))))
         raise NumericalError(f"the prediction of trajectory {b} (and maybe others) became non-finite; "
                              "predictions not written (the trajectory format forbids NaN/inf)")
-    attrs = {"predicted_by": str(model_name), "prediction": 1, **(extra_attrs or {})}
-    return Trajectories(x=pred, graphs=traj.graphs, dt=traj.dt, system=traj.system, u=traj.u,
-                        graph_index=np.asarray(traj.graph_index) if len(traj.graphs) > 1 else None,
-                        attrs=attrs)
+    attrs = {"predicted_by": str(model_name), "prediction": 1, **(attrs or {})}
+    return Trajectories(x=pred, graphs=list(graphs), dt=dt, system=system, u=u,
+                        graph_index=np.asarray(graph_index) if len(graphs) > 1 else None, attrs=attrs)
+
+
+def substeps_attrs(substeps, auto_report):
+    """Attributes naming the substeps of a predictions file (and auto's rule and estimate)."""
+    attrs = {"substeps": int(substeps)}
+    if auto_report is not None:
+        attrs.update(substeps_auto=1, substeps_tol=float(auto_report["tol"]),
+                     substeps_tol_reached=int(auto_report["reached"]), substeps_rule=auto_report["rule"])
+        if isinstance(auto_report["estimate"], float):
+            attrs["substeps_estimate"] = auto_report["estimate"]
+    return attrs
 
 
 def subset(traj, idx):

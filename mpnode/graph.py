@@ -104,6 +104,65 @@ class Graph:
         return cls(indptr, indices)
 
 
+def is_networkx(g):
+    """True for a networkx graph or a subclass of one (checked by type, so networkx is never
+    imported here)."""
+    return any(c.__module__.split(".")[0] == "networkx" for c in type(g).__mro__)
+
+
+def as_graph(g, n_nodes, directed=False, source="graph", field="graph"):
+    """A Graph on ``n_nodes`` nodes from what a user holds; InputError naming ``source``/``field``.
+
+    g : an mpnode Graph; a networkx graph with nodes 0..N-1 (a DiGraph edge u -> v means v
+    hears u); or an edge list of (sender, receiver) pairs, shape (E, 2), integers 0..N-1 --
+    undirected unless ``directed`` (then each pair is one way only: the receiver hears the
+    sender).  Node i is the data's node i.  An edge list or networkx graph that lists a node
+    with itself gets a graph that allows self-loops; duplicate pairs count once.
+    """
+    if isinstance(g, Graph):
+        if g.n_nodes != n_nodes:
+            raise InputError(source, field, f"has {g.n_nodes} nodes but the data have N = {n_nodes}",
+                             "a graph with one node per node of x (x[:, :, i] is node i)")
+        return g.validate(source, field)
+    if is_networkx(g):
+        return _from_networkx(g, n_nodes, source, field)
+    e = _edge_array(g, source, field)
+    if len(e) and (e.min() < 0 or e.max() >= n_nodes):
+        bad = e[(e < 0) | (e >= n_nodes)][0]
+        raise InputError(source, field, f"names node {bad}, but the data have N = {n_nodes} nodes",
+                         f"node ids in 0..{n_nodes - 1} (x[:, :, i] is node i)")
+    loops = bool(np.any(e[:, 0] == e[:, 1]))
+    return Graph.from_edges(n_nodes, e[:, ::-1], directed=bool(directed), self_loops=loops)  # (receiver, sender)
+
+
+def _edge_array(g, source, field):
+    """An edge list as an int64 array (E, 2); integral floats are accepted (e.g. from MATLAB)."""
+    try:
+        e = np.asarray(g)
+    except ValueError:  # ragged
+        e = None
+    if e is None or e.dtype == object or not (e.ndim == 2 and e.shape[1] == 2 or e.size == 0):
+        what = f"has shape {e.shape}" if e is not None and e.dtype != object and e.ndim else f"is a {type(g).__name__}"
+        raise InputError(source, field, what, "an edge list of (sender, receiver) pairs, shape (E, 2); "
+                         "or an mpnode.Graph or a networkx graph")
+    if e.size and e.dtype.kind == "f" and np.all(np.isfinite(e)) and np.all(e == np.round(e)):
+        e = e.astype(np.int64)
+    if e.size and e.dtype.kind not in "iu":
+        raise InputError(source, field, f"has dtype {e.dtype}", "integer node ids")
+    return e.reshape(-1, 2).astype(np.int64)
+
+
+def _from_networkx(g, n_nodes, source, field):
+    n = g.number_of_nodes()
+    if n != n_nodes:
+        raise InputError(source, field, f"is a networkx graph with {n} nodes but the data have N = {n_nodes}",
+                         "one graph node per node of x")
+    if set(g.nodes) != set(range(n)):
+        raise InputError(source, field, "is a networkx graph whose nodes are not labelled 0..N-1",
+                         "node i of the graph is x[:, :, i]: relabel, e.g. nx.relabel_nodes(g, {label: i, ...})")
+    return Graph.from_networkx(g)
+
+
 def block_diagonal(graphs):
     """One graph made of ``graphs`` side by side (node ids offset); the batch layout."""
     graphs = list(graphs)

@@ -1,26 +1,26 @@
-"""The MP-NODE model object: weights, integration settings and data normalisation together.
+"""The model object: a kind, its weights, integration settings and data normalisation together.
 
-A `Model` is what a model file (../shared/spec/model-format.md) holds; `rollout` works in
-the data's own units (it z-scores inputs and undoes it on outputs), so a model file alone
-reproduces mpnode's simulation.
+A `Model` is what a model file (docs/model-format.md) holds; `rollout` works in the
+data's own units (it z-scores inputs and undoes it on outputs), so a model file alone
+reproduces mpnode's simulation.  Three kinds share this class and the engine:
+``mpnode`` (MP-NODE: one network per node, learned messages), ``l2s`` (the paper's
+graph-network ODE baseline) and ``node`` (one network for a whole system of fixed size).
 """
 import functools
+from dataclasses import replace
 
 import numpy as np
 
-from . import integrate, mlp
+from . import engine, layouts, losses, model_file
 from .errors import InputError, NumericalError
 from .graph import Graph, block_diagonal
 
-FORMAT = "mpnode.model"
-FORMAT_VERSION = 1
-
 
 class Model:
-    """A trained (or freshly initialised) MP-NODE.
+    """A trained (or freshly initialised) model of any kind.
 
-    theta : ndarray, shape (P,) -- flat parameters, float32 or float64 (mpnode.mlp layout)
-    spec : integrate.FieldSpec -- dimensions, dt, substeps, message switches
+    theta : ndarray, shape (P,) -- flat parameters, float32 or float64 (mpnode.layouts)
+    spec : engine.FieldSpec -- kind, dimensions, dt, substeps, aggregation, message switches
     x_mean, x_std : ndarray, shape (dx,) -- the model works on (x - x_mean) / x_std
     u_mean, u_std : ndarray, shape (du,) -- the same for controls
     attrs : dict -- extra attributes saved with the model (history, provenance, seed)
@@ -30,7 +30,7 @@ class Model:
         theta = np.ascontiguousarray(theta)
         if theta.dtype not in (np.float32, np.float64):
             raise TypeError(f"parameters must be float32 or float64, not {theta.dtype}")
-        want = mlp.n_params(spec.state_dim, spec.control_dim, spec.message_dim, spec.hidden)
+        want = layouts.n_params(spec)
         if theta.shape != (want,):
             raise ValueError(f"theta has shape {theta.shape}, the dimensions need ({want},)")
         self.theta = theta
@@ -45,36 +45,49 @@ class Model:
     # ---- construction ----------------------------------------------------
     @classmethod
     def create(cls, state_dim, control_dim=0, message_dim=3, hidden=32, dt=0.05, substeps=1,
-               zero_messages=False, self_messages=False, seed=0, dtype=np.float32):
-        """A new model with Glorot-uniform weights and zero biases drawn from ``seed``."""
-        spec = integrate.FieldSpec(state_dim, control_dim, message_dim, hidden, float(dt), int(substeps),
-                                   bool(zero_messages), bool(self_messages))
-        theta = mlp.glorot_init(state_dim, control_dim, message_dim, hidden, seed=seed, dtype=dtype)
-        return cls(theta, spec, attrs={"seed": seed})
+               zero_messages=False, self_messages=False, seed=0, dtype=np.float32, kind="mpnode",
+               aggregation=None, mean_degree=None, n_nodes=None):
+        """A new model with Glorot-uniform weights and zero biases drawn from ``seed``.
+
+        kind "l2s" and "node" have no messages (message_dim is ignored); "node" needs the
+        system's n_nodes.  aggregation defaults to the kind's own (mean; sum for l2s).
+        """
+        if kind not in engine.KINDS:
+            raise InputError("model", "kind", f"is {kind!r}", " or ".join(engine.KINDS))
+        if kind != "mpnode":
+            message_dim, zero_messages = 0, False
+        aggregation = aggregation or engine.default_aggregation(kind)
+        spec = engine.FieldSpec(state_dim, control_dim, message_dim, hidden, float(dt), int(substeps),
+                                bool(zero_messages), bool(self_messages), kind, aggregation,
+                                None if mean_degree is None else float(mean_degree),
+                                None if n_nodes is None else int(n_nodes))
+        return cls(layouts.glorot_init(spec, seed=seed, dtype=dtype), spec, attrs={"seed": seed})
 
     @classmethod
     def load(cls, path):
         """Read and validate a model file; raises InputError naming the file and field."""
-        from .model_file import read_model
-
-        return read_model(path)
+        return cls(**model_file.read_model(path))
 
     def save(self, path, **attrs):
-        """Write the model file atomically; refuses non-finite weights (NumericalError)."""
-        from .model_file import write_model
-
-        write_model(path, self, extra_attrs=attrs)
+        """Write the model file atomically (extra ``attrs`` beside the model's own); refuses
+        non-finite weights or normalisation (NumericalError)."""
+        self.check_finite()
+        norm = {"x_mean": self.x_mean, "x_std": self.x_std, "u_mean": self.u_mean, "u_std": self.u_std}
+        model_file.write_model(path, self.spec, self.params, norm, {**self.attrs, **attrs})
 
     # ---- views -----------------------------------------------------------
+    @property
+    def kind(self):
+        return self.spec.kind
+
     @property
     def dtype(self):
         return self.theta.dtype
 
     @property
     def params(self):
-        """Named views W1 b1 W2 b2 W3 b3 into theta."""
-        s = self.spec
-        return mlp.split(self.theta, mlp.param_shapes(s.state_dim, s.control_dim, s.message_dim, s.hidden))
+        """Named views into theta (W1 b1 W2 b2 W3 b3, or the l2s arrays)."""
+        return layouts.split(self.theta, layouts.param_shapes(self.spec))
 
     def copy(self, dtype=None):
         """An independent copy, optionally in another precision."""
@@ -84,8 +97,6 @@ class Model:
 
     def with_spec(self, **changes):
         """The same weights with other settings, e.g. ``with_spec(substeps=4)``."""
-        from dataclasses import replace
-
         return Model(self.theta, replace(self.spec, **changes), self.x_mean, self.x_std, self.u_mean,
                      self.u_std, dict(self.attrs))
 
@@ -100,6 +111,13 @@ class Model:
         return None if u is None else ((u - self.u_mean) / self.u_std).astype(self.dtype)
 
     # ---- simulation ------------------------------------------------------
+    def check_nodes(self, n_nodes, source="graph", field="nodes"):
+        """InputError unless the model can run on systems of ``n_nodes`` nodes (a node model: its own N)."""
+        if self.kind == "node" and n_nodes != self.spec.n_nodes:
+            raise InputError(source, field, f"has {n_nodes} nodes per system, but this plain neural ODE "
+                             f"(kind node) was trained on {self.spec.n_nodes}",
+                             f"systems of exactly {self.spec.n_nodes} nodes (an mpnode or l2s model runs on any graph)")
+
     def rollout(self, x0, graph, u=None, steps=None):
         """Simulate B trajectories from their initial states (messages start at 0).
 
@@ -122,11 +140,24 @@ class Model:
                 raise ValueError("give steps= (or controls u, whose length sets it)")
             steps = u.shape[1]
         b, n, dx = x0.shape
+        self.check_nodes(n)
         flat = batch_graph(graph, b)
         un = None if u is None else to_time_major(self.normalize_u(np.asarray(u)))
-        xs = integrate.rollout(self.spec, self.theta, self.normalize_x(x0).reshape(b * n, dx), flat, un, steps)
+        xs = engine.forward(self.spec, self.theta, self.normalize_x(x0).reshape(b * n, dx), flat, un, steps)
         x = self.denormalize_x(xs.reshape(steps + 1, b, n, dx).transpose(1, 0, 2, 3)).astype(self.dtype)
         return x[0] if single else x
+
+    def summary(self):
+        """A JSON-ready description: kind, sizes, settings, parameter count, normalisation, attrs."""
+        s = self.spec
+        return {"kind": s.kind, "state_dim": s.state_dim, "control_dim": s.control_dim,
+                "message_dim": s.message_dim, "hidden": s.hidden, "n_nodes": s.n_nodes,
+                "aggregation": s.aggregation, "mean_degree": s.mean_degree, "dt": s.dt, "substeps": s.substeps,
+                "self_messages": s.self_messages, "zero_messages": s.zero_messages, "dtype": str(self.dtype),
+                "parameters": int(self.theta.size),
+                "arrays": {name: list(a.shape) for name, a in self.params.items()},
+                "x_mean": self.x_mean.tolist(), "x_std": self.x_std.tolist(),
+                "attrs": {k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in self.attrs.items()}}
 
     def check_finite(self):
         """Raise NumericalError if any weight or normalisation constant is NaN/inf."""
@@ -142,14 +173,15 @@ def loss_and_grad(model, x, graph, u=None, loss="huber"):
     x : ndarray, shape (B, T+1, N, dx), in data units (normalised with the model's constants)
     graph : Graph shared by all B, or a list of B Graphs; u : (B, T, N, du) or None
     loss : "huber" (delta 1) or "mse" on normalised states, summed over state dimensions
-    and steps 1..T and averaged over the B*N nodes (the seed code's time_series_huber).
+    and steps 1..T and averaged over the B*N nodes (mpnode.losses).
     Returns (loss, gtheta) with gtheta shaped like model.theta.
     """
     x = np.asarray(x)
     b, t1, n, dx = x.shape
+    model.check_nodes(n)
     xn = to_time_major(model.normalize_x(x))
     un = None if u is None else to_time_major(model.normalize_u(np.asarray(u)))
-    value, gtheta, _ = integrate.loss_and_grad(model.spec, model.theta, xn, batch_graph(graph, b), un, loss)
+    value, gtheta, _ = losses.value_and_grad(model.spec, model.theta, xn, batch_graph(graph, b), un, loss)
     return value, gtheta
 
 

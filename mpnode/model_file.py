@@ -1,64 +1,113 @@
-"""Model files (../shared/spec/model-format.md, version 1): validated reader, atomic writer."""
+"""Model files (docs/model-format.md, version 2; version 1 still reads): validated reader, atomic writer.
+
+The reader returns what the file holds (spec, flat parameters, normalisation, extra
+attributes) and the writer takes the same; `mpnode.model.Model` makes a model of them.
+"""
 import numpy as np
 
-from . import integrate, mlp
+from . import engine, layouts
 from .atomic import atomic_path
-from .data import plain_attr
+from .data import H5_DAMAGE, plain_attr
 from .errors import InputError
-from .model import FORMAT, FORMAT_VERSION, Model
+
+FORMAT = "mpnode.model"
+FORMAT_VERSION = 2
 
 _INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "zero_messages", "self_messages")
-#: what h5py raises for damaged bytes: OSError, RuntimeError (corrupt headers), KeyError (unopenable objects)
-_H5_DAMAGE = (OSError, RuntimeError, KeyError, TypeError, ValueError)  # + "Unknown string encoding", ...
-_SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator"}
+_SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator", "kind",
+                                 "aggregation", "mean_degree", "n_nodes"}
+
+
+def _is_int(v):
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v):
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+
+
+class _Attrs:
+    """The root attributes of an open file, each checked as it is read."""
+
+    def __init__(self, f, path):
+        self.a = {k: plain_attr(v) for k, v in f.attrs.items()}
+        self.path = path
+
+    def need(self, name, check, expected, default=None):
+        if name not in self.a:
+            if default is not None:
+                return default
+            raise InputError(self.path, name, "root attribute is missing", expected)
+        if not check(self.a[name]):
+            raise InputError(self.path, name, f"is {self.a[name]!r}", expected)
+        return self.a[name]
+
+    def spec(self):
+        """The FieldSpec the attributes describe (every rule of the format's root attributes)."""
+        need = self.need
+        need("format", lambda v: isinstance(v, str) and v == FORMAT, f"'{FORMAT}'")
+        version = need("format_version", lambda v: _is_int(v) and v in (1, FORMAT_VERSION),
+                       f"1 or {FORMAT_VERSION} (the versions this reader knows)")
+        need("activation", lambda v: isinstance(v, str) and v == "tanh", "'tanh'")
+        need("integrator", lambda v: isinstance(v, str) and v == "rk4", "'rk4' (classic 4-stage)")
+        known = engine.KINDS if version > 1 else ("mpnode",)
+        kind = need("kind", lambda v: isinstance(v, str) and v in known,
+                    " or ".join(known) + f" (the kinds format version {version} knows)", default="mpnode")
+        aggs = engine.AGGREGATIONS if version > 1 else ("mean",)
+        aggregation = need("aggregation", lambda v: isinstance(v, str) and v in aggs,
+                           " or ".join(aggs) + " (the aggregations this version knows)",
+                           default=engine.default_aggregation(kind))
+        mean_degree = None
+        if aggregation == "scaled":
+            mean_degree = float(need("mean_degree", lambda v: _is_number(v) and v > 0,
+                                     "a number > 0 (the training graphs' mean in-degree)"))
+        n_nodes = None
+        if kind == "node":
+            n_nodes = need("n_nodes", lambda v: _is_int(v) and v >= 1, "an integer >= 1 (the system's node count)")
+        dx = need("state_dim", lambda v: _is_int(v) and v >= 1, "an integer >= 1")
+        du = need("control_dim", lambda v: _is_int(v) and v >= 0, "an integer >= 0")
+        if kind == "mpnode":
+            dm = need("message_dim", lambda v: _is_int(v) and v >= 0, "an integer >= 0")
+        else:
+            dm = need("message_dim", lambda v: _is_int(v) and v == 0, f"0 (a {kind} model has no messages)", default=0)
+        hidden = need("hidden", lambda v: _is_int(v) and v >= 1, "an integer >= 1")
+        substeps = need("substeps", lambda v: _is_int(v) and v >= 1, "an integer >= 1")
+        flag = lambda v: isinstance(v, (int, float)) and v in (0, 1)  # noqa: E731
+        zero = need("zero_messages", flag, "0 or 1", default=0 if kind != "mpnode" else None)
+        if kind != "mpnode" and zero:
+            raise InputError(self.path, "zero_messages", "is 1", f"0 (a {kind} model has no messages)")
+        self_msg = need("self_messages", flag, "0 or 1", default=0 if kind == "node" else None)
+        dt = need("dt", lambda v: _is_number(v) and v > 0, "a number > 0")
+        return engine.FieldSpec(dx, du, dm, hidden, float(dt), substeps, bool(zero), bool(self_msg), kind,
+                                aggregation, mean_degree, n_nodes)
 
 
 def read_model(path):
-    """The Model stored in ``path``; InputError(path, field, ...) for anything off-spec."""
+    """What ``path`` holds: {spec, theta, x_mean, x_std, u_mean, u_std, attrs} (the arguments of
+    mpnode.model.Model); InputError(path, field, ...) for anything off-format."""
     import h5py
 
     try:
         f = h5py.File(path, "r")
     except FileNotFoundError:
         raise InputError(path, "file", "does not exist", "a model file written by `mpnode train`") from None
-    except _H5_DAMAGE as e:
+    except H5_DAMAGE as e:
         raise InputError(path, "file", f"is not a readable HDF5 file ({e})", "an mpnode model file") from None
     try:
         with f:
-            a = {k: plain_attr(v) for k, v in f.attrs.items()}
-
-            def need(name, check, expected):
-                if name not in a:
-                    raise InputError(path, name, "root attribute is missing", expected)
-                if not check(a[name]):
-                    raise InputError(path, name, f"is {a[name]!r}", expected)
-                return a[name]
-
-            need("format", lambda v: isinstance(v, str) and v == FORMAT, f"'{FORMAT}'")
-            need("format_version", lambda v: isinstance(v, int) and v == FORMAT_VERSION, str(FORMAT_VERSION))
-            need("activation", lambda v: isinstance(v, str) and v == "tanh", "'tanh'")
-            need("integrator", lambda v: isinstance(v, str) and v == "rk4", "'rk4' (classic 4-stage)")
-            is_int = lambda v: isinstance(v, int) and not isinstance(v, bool)  # noqa: E731
-            dx = need("state_dim", lambda v: is_int(v) and v >= 1, "an integer >= 1")
-            du = need("control_dim", lambda v: is_int(v) and v >= 0, "an integer >= 0")
-            dm = need("message_dim", lambda v: is_int(v) and v >= 0, "an integer >= 0")
-            hidden = need("hidden", lambda v: is_int(v) and v >= 1, "an integer >= 1")
-            substeps = need("substeps", lambda v: is_int(v) and v >= 1, "an integer >= 1")
-            zero = need("zero_messages", lambda v: isinstance(v, (int, float)) and v in (0, 1), "0 or 1")
-            self_msg = need("self_messages", lambda v: isinstance(v, (int, float)) and v in (0, 1), "0 or 1")
-            dt = need("dt", lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0,
-                      "a number > 0")
-
-            shapes = mlp.param_shapes(dx, du, dm, hidden)
+            attrs = _Attrs(f, path)
+            spec = attrs.spec()
+            shapes = layouts.param_shapes(spec)
             params, dtype = {}, None
-            for name in mlp.PARAM_NAMES:
-                arr = _dataset(f, path, f"params/{name}", shapes[name])
+            for name, shape in shapes.items():
+                arr = _dataset(f, path, f"params/{name}", shape)
                 if dtype is None:
                     dtype = arr.dtype
                 elif arr.dtype != dtype:
-                    raise InputError(path, f"params/{name}", f"has dtype {arr.dtype} but params/W1 has {dtype}",
-                                     "one float dtype for all parameters")
+                    raise InputError(path, f"params/{name}", f"has dtype {arr.dtype} but the first parameter has "
+                                     f"{dtype}", "one float dtype for all parameters")
                 params[name] = arr
+            dx, du = spec.state_dim, spec.control_dim
             norm = {"x_mean": _dataset(f, path, "norm/x_mean", (dx,)), "x_std": _dataset(f, path, "norm/x_std", (dx,))}
             if du:
                 norm["u_mean"] = _dataset(f, path, "norm/u_mean", (du,))
@@ -66,17 +115,14 @@ def read_model(path):
             for key in ("x_std", "u_std"):
                 if key in norm and np.any(norm[key] <= 0):
                     raise InputError(path, f"norm/{key}", "has a value <= 0", "standard deviations > 0")
-            extra = {k: v for k, v in a.items() if k not in _SPEC_ATTRS}
-
+            extra = {k: v for k, v in attrs.a.items() if k not in _SPEC_ATTRS}
     except InputError:
         raise
-    except _H5_DAMAGE as e:  # damaged bytes that h5py only notices while reading
+    except H5_DAMAGE as e:  # damaged bytes that h5py only notices while reading
         raise InputError(path, "file", f"cannot be read ({' '.join(str(e).split())})",
                          "an intact mpnode model file") from None
-
-    spec = integrate.FieldSpec(dx, du, dm, hidden, float(dt), substeps, bool(zero), bool(self_msg))
-    return Model(mlp.join(params, dtype=dtype), spec, norm["x_mean"], norm["x_std"],
-                 norm.get("u_mean"), norm.get("u_std"), attrs=extra)
+    return dict(spec=spec, theta=layouts.join(params, shapes, dtype=dtype), x_mean=norm["x_mean"],
+                x_std=norm["x_std"], u_mean=norm.get("u_mean"), u_std=norm.get("u_std"), attrs=extra)
 
 
 def _dataset(f, path, name, shape):
@@ -93,25 +139,30 @@ def _dataset(f, path, name, shape):
     return arr
 
 
-def write_model(path, model, extra_attrs=None):
-    """Write ``model`` per the model format, atomically; NumericalError if anything is non-finite."""
+def spec_attrs(spec):
+    """The root attributes that describe ``spec`` (format version 2)."""
+    attrs = dict(format=FORMAT, format_version=FORMAT_VERSION, kind=spec.kind, aggregation=spec.aggregation,
+                 state_dim=spec.state_dim, control_dim=spec.control_dim, message_dim=spec.message_dim,
+                 hidden=spec.hidden, activation="tanh", dt=float(spec.dt), substeps=spec.substeps,
+                 integrator="rk4", zero_messages=int(spec.zero_messages), self_messages=int(spec.self_messages))
+    if spec.mean_degree is not None:
+        attrs["mean_degree"] = float(spec.mean_degree)
+    if spec.n_nodes is not None:
+        attrs["n_nodes"] = int(spec.n_nodes)
+    return attrs
+
+
+def write_model(path, spec, params, norm, attrs):
+    """Write a model file atomically: ``params`` {name: array} of spec's layout, ``norm``
+    {x_mean, x_std, u_mean, u_std} (the u entries only when du > 0), extra ``attrs``."""
     import h5py
 
-    model.check_finite()
-    s = model.spec
-    attrs = {**model.attrs, **(extra_attrs or {})}
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         for k, v in attrs.items():
             if k not in _SPEC_ATTRS and v is not None:
                 f.attrs[k] = v
-        f.attrs.update(format=FORMAT, format_version=FORMAT_VERSION, state_dim=s.state_dim,
-                       control_dim=s.control_dim, message_dim=s.message_dim, hidden=s.hidden,
-                       activation="tanh", dt=float(s.dt), substeps=s.substeps, integrator="rk4",
-                       zero_messages=int(s.zero_messages), self_messages=int(s.self_messages))
-        for name, arr in model.params.items():
+        f.attrs.update(spec_attrs(spec))
+        for name, arr in params.items():
             f[f"params/{name}"] = arr
-        f["norm/x_mean"] = model.x_mean
-        f["norm/x_std"] = model.x_std
-        if s.control_dim:
-            f["norm/u_mean"] = model.u_mean
-            f["norm/u_std"] = model.u_std
+        for name in ("x_mean", "x_std", "u_mean", "u_std")[:4 if spec.control_dim else 2]:
+            f[f"norm/{name}"] = norm[name]

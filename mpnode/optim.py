@@ -1,9 +1,9 @@
-"""Adam on mpnode's flat parameter vector, with the seed code's gradient clipping.
+"""Adam on mpnode's flat parameter vector, with gradient clipping per parameter array.
 
-The seed code (Flux) chains ``ClipNorm(500)`` before ``ADAM(1e-3)``; Flux applies an
-optimiser to every parameter array on its own, so the clipping rescales each of W1 b1
-W2 b2 W3 b3 separately when *that array's* L2 norm exceeds the threshold.  `clip_gradient`
-does that (``mode="per-array"``) or clips by one norm over all parameters (``"global"``).
+Clipping each of the parameter arrays on its own when *that array's* L2 norm exceeds the
+threshold (500) is what the original training does (Flux's ``ClipNorm`` before ``ADAM``
+applies to every array separately; docs/design.md); ``mode="global"`` clips by one norm
+over all parameters instead.
 
 The moments are kept in float64 whatever the model's dtype, so the update is the same
 arithmetic on every run (resume is bit-for-bit) and float32 models lose nothing to the

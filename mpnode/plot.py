@@ -1,80 +1,350 @@
-"""Figures (the optional ``plot`` extra: ``pip install -e '.[plot]'``, i.e. matplotlib >= 3.6).
+"""Figures of a run: evaluation, simulation and training (the optional ``plot`` extra).
 
-matplotlib is imported inside the functions, so ``import mpnode.plot`` works without it.
+Three figures a person would put in a report, each from what the library already returns:
+`plot_eval` (truth against prediction per state dimension for a few trajectories and nodes,
+and the error over time with the predictable horizon marked: the MP-NODE paper's Fig. 2 in
+spirit) from `mpnode.evaluate.evaluate`'s EvalResult; `plot_simulation` (a few nodes per
+state dimension) from any rollout; `plot_training` (losses, validation normalised MSE and
+learning rate per epoch) from the training log.  They know no particular system: state dimensions are named by
+the file's ``state_names`` attribute when it has one, x[0], x[1], ... otherwise, and time
+is in the file's units (t = step * dt).
+
+matplotlib is imported inside the functions only (``import mpnode.plot`` works without it),
+and only through `matplotlib.figure.Figure`: no pyplot, no global backend switched under a
+notebook's feet.  Each function returns the Figure and, given ``out``, writes it atomically.
+`check_output` lets a command fail before any work when matplotlib is missing.
 """
+import functools
+import os
+
 import numpy as np
 
-from .data import read_trajectories
+from .atomic import atomic_path
+from .errors import InputError
+from .metrics import normalised_sq_error
+
+INSTALL_HINT = "matplotlib installed: pip install 'mpnode[plot]' (from a checkout: pip install '.[plot]')"
+#: 1200 x 800 pixels: legible at 100 % on a screen and in a report
+FIGSIZE, DPI = (12, 8), 100
+STYLE = {"font.size": 11, "axes.titlesize": 12, "axes.labelsize": 11, "legend.fontsize": 10,
+         "xtick.labelsize": 10, "ytick.labelsize": 10, "figure.titlesize": 13, "axes.grid": True,
+         "grid.alpha": 0.3}
 
 
-def plot_swarm(true_file, pred_file, trajectory=0, out="swarm.png", title=None, dpi=110):
-    """A predicted quadrotor swarm against the true one: top view, side view and position error.
+def check_output(path, flag="--plot"):
+    """InputError unless a figure can be written to ``path``: matplotlib is installed and the
+    extension names a format it writes.  Returns the format (e.g. "png").  Cheap: call it
+    before any work, so a missing extra costs nothing."""
+    try:
+        import matplotlib  # noqa: F401
+        from matplotlib.figure import Figure
+    except ImportError:
+        raise InputError(flag, path, "needs matplotlib (the plot extra), which is not installed",
+                         INSTALL_HINT) from None
+    fmt = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
+    supported = Figure().canvas.get_supported_filetypes()
+    if fmt not in supported:
+        common = [f".{k}" for k in ("pdf", "svg", "jpg") if k in supported]
+        raise InputError(flag, path, f"has extension {'.' + fmt if fmt else '(none)'}, not a figure format",
+                         f"a file name ending in .png (or another format matplotlib writes: {', '.join(common)}, "
+                         "...)")
+    return fmt
 
-    true_file : trajectory file of the reference simulator (x (B, T+1, N, 13), optionally
-    ``aux/load`` (B, T+1, 6));  pred_file : the model's predictions of the same trajectories
-    (``mpnode eval MODEL DATA --predictions PRED``).  Positions are x[..., 0:3] of every node.
-    True paths solid, predicted dashed, one colour per quadrotor; circles mark the start,
-    squares the true and crosses the predicted end.  The load is drawn from the TRUE file
-    only (black): it is not a graph node, so the model never predicts it.  Grey lines are the
-    true cables at the first and last step.  The third panel is each quadrotor's position
-    error |r_pred - r_true| over time.  Writes ``out`` (PNG) and returns its path.
-    """
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def save_figure(fig, out):
+    """Write ``fig`` to ``out`` atomically, in the format its extension names; returns ``out``."""
+    fmt = check_output(out, "out")
+    with atomic_path(out) as tmp:
+        if fmt == "png":
+            _save_png(fig, tmp)
+        else:
+            fig.savefig(tmp, format=fmt, dpi=fig.dpi)
+    return out
 
-    truth, pred = read_trajectories(true_file), read_trajectories(pred_file)
-    if not 0 <= trajectory < min(truth.n_trajectories, pred.n_trajectories):
-        raise IndexError(f"trajectory {trajectory} not in both files ({truth.n_trajectories} and "
-                         f"{pred.n_trajectories} trajectories)")
-    xt = np.asarray(truth.x[trajectory], dtype=np.float64)[..., 0:3]  # (T+1, N, 3)
-    xp = np.asarray(pred.x[trajectory], dtype=np.float64)[..., 0:3]
-    if xt.shape != xp.shape:
-        raise ValueError(f"true positions {xt.shape} and predicted {xp.shape} differ in shape")
-    load = truth.aux.get("load")
-    load = None if load is None else np.asarray(load[trajectory], dtype=np.float64)[:, 0:3]
-    t = np.arange(xt.shape[0]) * float(truth.dt)
-    n = xt.shape[1]
-    colors = plt.get_cmap("tab10")(np.arange(n) % 10)
 
-    fig, axes = plt.subplots(1, 3, figsize=(15.5, 4.9), gridspec_kw={"width_ratios": [1.15, 1.15, 1]})
-    for ax, (a, b), name in ((axes[0], (0, 1), "top view (x-y)"), (axes[1], (0, 2), "side view (x-z)")):
-        if load is not None:
-            for k in (0, -1):
-                for i in range(n):
-                    ax.plot([load[k, a], xt[k, i, a]], [load[k, b], xt[k, i, b]], color="0.7", lw=0.8, zorder=1)
-            ax.plot(load[:, a], load[:, b], color="k", lw=2)
-            ax.plot(load[0, a], load[0, b], "o", color="k", ms=5)
-        for i in range(n):
-            ax.plot(xt[:, i, a], xt[:, i, b], "-", color=colors[i], lw=1.8)
-            ax.plot(xp[:, i, a], xp[:, i, b], "--", color=colors[i], lw=1.6)
-            ax.plot(xt[0, i, a], xt[0, i, b], "o", color=colors[i], ms=5)
-            ax.plot(xt[-1, i, a], xt[-1, i, b], "s", color=colors[i], ms=5)
-            ax.plot(xp[-1, i, a], xp[-1, i, b], "x", color=colors[i], ms=7, mew=2)
-        ax.set_xlabel("xyz"[a] + " (m)")
-        ax.set_ylabel("xyz"[b] + " (m)")
-        ax.set_title(name)
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.grid(alpha=0.3)
-    err = np.linalg.norm(xp - xt, axis=-1)  # (T+1, N)
-    for i in range(n):
-        axes[2].plot(t, err[:, i], color=colors[i], lw=1.5, label=f"quad {i + 1}")
-    axes[2].set_xlabel("time (s)")
-    axes[2].set_ylabel("|r_pred - r_true| (m)")
-    axes[2].set_title("position error")
-    axes[2].grid(alpha=0.3)
-    axes[2].legend(fontsize=8, ncol=2)
+def _save_png(fig, path):
+    """A 256-colour PNG: line plots use a handful of colours, so it looks the same at a third
+    of the size (figures end up in reports and repositories).  Pillow comes with matplotlib."""
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=fig.dpi)
+    buf.seek(0)
+    with Image.open(buf) as image:
+        image.convert("RGB").quantize(colors=256).save(path, format="PNG", optimize=True)
+
+
+def _styled(draw):
+    """Run a figure function under STYLE (matplotlib reads font sizes when artists are made)."""
+    @functools.wraps(draw)
+    def wrapper(*args, **kwargs):
+        import matplotlib
+
+        with matplotlib.rc_context(STYLE):
+            return draw(*args, **kwargs)
+    return wrapper
+
+
+def _figure(figsize=FIGSIZE):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=figsize, dpi=DPI, layout="constrained")
+
+
+def _finish(fig, out):
+    if out is not None:
+        save_figure(fig, out)
+    return fig
+
+
+def time_label(dt):
+    """The time axis' label: the file's own units, which it does not name."""
+    return f"t (dt = {float(dt):g})"
+
+
+def dimension_names(attrs, dx):
+    """The ``state_names`` attribute when it names all dx dimensions, else x[0], x[1], ..."""
+    names = (attrs or {}).get("state_names")
+    names = [names] if isinstance(names, str) else names
+    if isinstance(names, (list, tuple, np.ndarray)) and len(names) == dx and all(isinstance(n, str) for n in names):
+        return [str(n) for n in names]
+    return [f"x[{k}]" for k in range(dx)]
+
+
+def _limits(truth, pred):
+    """y-limits showing the truth whole and a prediction as far as twice the truth's range:
+    a prediction that blows up leaves the panel instead of flattening the truth."""
+    lo, hi = float(np.min(truth)), float(np.max(truth))
+    r = max(hi - lo, 1e-12 * max(abs(lo), abs(hi), 1.0))
+    finite = pred[np.isfinite(pred)]
+    plo = max(float(finite.min()), lo - r) if finite.size else lo
+    phi = min(float(finite.max()), hi + r) if finite.size else hi
+    lo, hi = min(lo, plo), max(hi, phi)
+    pad = 0.05 * (hi - lo) if hi > lo else 0.5
+    return lo - pad, hi + pad
+
+
+def _state_grid(fig, spec, x, dt, names, bs, ns, ds, truth=None):
+    """Panels (state dimension x trajectory) of nodes ``ns``: x dashed over the truth when
+    given, solid otherwise; one colour per node.  Returns the axes (rows, columns)."""
+    t = np.arange(x.shape[1]) * float(dt)
+    axes = np.empty((len(ds), len(bs)), dtype=object)
+    with np.errstate(invalid="ignore"):
+        for c, b in enumerate(bs):
+            for r, d in enumerate(ds):
+                ax = fig.add_subplot(spec[r, c], sharex=axes[0, 0] if r or c else None)
+                axes[r, c] = ax
+                for i in ns:
+                    if truth is not None:
+                        ax.plot(t, truth[b, :, i, d], color=f"C{i % 10}", lw=1.8)
+                    ax.plot(t, np.where(np.isfinite(x[b, :, i, d]), x[b, :, i, d], np.nan), color=f"C{i % 10}",
+                            lw=1.8, ls="--" if truth is not None else "-")
+                if truth is not None:
+                    ax.set_ylim(*_limits(truth[b][:, list(ns), d], x[b][:, list(ns), d]))
+                if r == 0:
+                    ax.set_title(f"trajectory {b}")
+                if c == 0:
+                    ax.set_ylabel(names[d])
+                if r == len(ds) - 1:
+                    ax.set_xlabel(time_label(dt))
+                else:
+                    ax.tick_params(labelbottom=False)
+    return axes
+
+
+def _node_legend(ax, ns, with_truth):
     from matplotlib.lines import Line2D
 
-    handles = [Line2D([], [], color="0.3", lw=1.8, label="quadrotor, true"),
-               Line2D([], [], color="0.3", lw=1.6, ls="--", label="quadrotor, predicted (colours: right panel)"),
-               Line2D([], [], color="k", lw=2, label="load, true only (not a graph node: the model does not predict it)"),
-               Line2D([], [], color="0.7", lw=0.8, label="true cables at the first and last step")]
-    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8.5, frameon=False)
-    head = title or f"{n} quadrotors, trajectory {trajectory}"
-    fig.suptitle(f"{head}: true solid, predicted dashed (o start, \u25a1 true end, \u00d7 predicted end)", fontsize=10)
-    fig.tight_layout(rect=(0, 0.05, 1, 0.95))
-    fig.savefig(out, dpi=dpi)
-    plt.close(fig)
-    return out
+    handles = [Line2D([], [], color=f"C{i % 10}", lw=2, label=f"node {i}") for i in ns]
+    if with_truth:
+        handles += [Line2D([], [], color="0.25", lw=1.8, label="truth"),
+                    Line2D([], [], color="0.25", lw=1.8, ls="--", label="prediction")]
+    ax.legend(handles=handles, loc="best", ncol=2 if len(handles) > 4 else 1, framealpha=0.85)
+
+
+def _selection(shape, trajectories, nodes, dims):
+    """The first few trajectories, nodes and state dimensions (ranges)."""
+    b, _, n, dx = shape
+    return range(min(b, trajectories)), range(min(n, nodes)), range(min(dx, dims))
+
+
+def _shown(names, ds, dx):
+    """' (x[0], x[1] of 13 dimensions shown)' when not every dimension fits."""
+    return "" if len(ds) == dx else f" ({', '.join(names[d] for d in ds)} of {dx} state dimensions shown)"
+
+
+@_styled
+def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title=None):
+    """Truth against prediction, and the error over time with the predictable horizon.
+
+    truth : the Trajectories evaluated;  result : its `evaluate` EvalResult.  Left: one panel
+    per state dimension (rows, the first ``dims``) and trajectory (columns, the first
+    ``trajectories``), the first ``nodes`` nodes, truth solid and prediction dashed.  Right:
+    the normalised MSE per step (mean over trajectories, as `mpnode eval` reports it; the
+    median and 10-90 % of the trajectories' own), the horizon thresholds and where the median
+    trajectory first exceeds each, and the first blow-up.  Returns the Figure; writes ``out``.
+    """
+    x = np.asarray(truth.x, dtype=np.float64)
+    pred = np.asarray(result.predictions, dtype=np.float64)
+    bs, ns, ds = _selection(x.shape, trajectories, nodes, dims)
+    names = dimension_names(truth.attrs, x.shape[3])
+    fig = _figure()
+    spec = fig.add_gridspec(len(ds), len(bs) + 1, width_ratios=[1] * len(bs) + [1.3])
+    axes = _state_grid(fig, spec, pred, truth.dt, names, bs, ns, ds, truth=x)
+    _node_legend(axes[0, 0], ns, with_truth=True)
+    _error_panel(fig.add_subplot(spec[:, -1]), x, pred, truth.dt, result)
+    head = title or f"{truth.system}: prediction against truth"
+    fig.suptitle(f"{head}: normalised MSE {result.nmse:.3g} (mean over steps 1..{x.shape[1] - 1})"
+                 f"{_shown(names, ds, x.shape[3])}")
+    return _finish(fig, out)
+
+
+def _error_panel(ax, x, pred, dt, result):
+    """Normalised MSE over time (log scale), horizon thresholds and crossings, first blow-up."""
+    t = np.arange(x.shape[1]) * float(dt)
+    with np.errstate(invalid="ignore"):
+        own = normalised_sq_error(pred, x).mean(axis=(2, 3))[:, 1:]  # (B, T): each trajectory's
+        mean = np.asarray(result.nmse_per_step, dtype=np.float64)[1:]
+        if own.shape[0] >= 3:
+            lo, med, hi = np.percentile(own, [10, 50, 90], axis=0)
+            ax.fill_between(t[1:], _loggable(lo), _loggable(hi), color="0.5", alpha=0.25,
+                            label="10-90 % of trajectories")
+            ax.plot(t[1:], _loggable(med), color="0.3", lw=1.2, ls=":", label="median trajectory")
+    ax.plot(t[1:], _loggable(mean), color="k", lw=2.2, label="mean (as mpnode eval reports)")
+    for k, (thr, h) in enumerate((result.horizons or {}).items()):
+        color = ("C4", "C3", "C5", "C6")[k % 4]
+        ax.axhline(float(thr), color=color, lw=1, ls="--")
+        when = f"beyond t = {t[-1]:.3g}" if h["median_time"] is None else f"t = {h['median_time']:.3g}"
+        if h["median_time"] is not None:
+            ax.axvline(h["median_time"], color=color, lw=1.5)
+        ax.plot([], [], color=color, lw=1.5, label=f"horizon, nMSE > {thr}: {when} (median)")
+    if result.first_bad_step is not None:
+        ax.axvline(result.first_bad_step * float(dt), color="k", lw=2, ls="-.",
+                   label=f"first blow-up: t = {result.first_bad_step * float(dt):.3g}")
+    _log_axis(ax, np.concatenate([mean, own.ravel()]))
+    ax.set_xlim(0, t[-1])
+    ax.set_xlabel(time_label(dt))
+    ax.set_ylabel("normalised MSE (1 = predicting the mean)")
+    ax.set_title("error over time")
+    ax.legend(loc="lower right", fontsize=9, framealpha=0.85)
+
+
+def _loggable(v):
+    """Values for a log axis: non-finite (blown up) and non-positive entries are gaps."""
+    v = np.asarray(v, dtype=np.float64)
+    return np.where(np.isfinite(v) & (v > 0), v, np.nan)
+
+
+@_styled
+def plot_simulation(x, dt, out=None, *, state_names=None, trajectories=2, nodes=5, dims=4, title=None):
+    """Simulated trajectories: one panel per state dimension (rows) and trajectory (columns),
+    one line per node (the first ``nodes``).  x : (B, T+1, N, dx), e.g. a SimulationResult's
+    predictions;  state_names : one per dimension (default x[0], x[1], ...).  Returns the
+    Figure; writes ``out``."""
+    x = np.asarray(x, dtype=np.float64)
+    bs, ns, ds = _selection(x.shape, trajectories, nodes, dims)
+    names = dimension_names({"state_names": state_names}, x.shape[3])
+    fig = _figure()
+    axes = _state_grid(fig, fig.add_gridspec(len(ds), len(bs)), x, dt, names, bs, ns, ds)
+    _node_legend(axes[0, 0], ns, with_truth=False)
+    more = f", the first {len(ns)} of {x.shape[2]} nodes" if len(ns) < x.shape[2] else ""
+    fig.suptitle(f"{title or 'simulated trajectories'}{more}{_shown(names, ds, x.shape[3])}")
+    return _finish(fig, out)
+
+
+@_styled
+def plot_training(log, out=None, *, loss=None, title=None):
+    """Training and validation loss per epoch (log scale), the validation normalised MSE when
+    the log has it, and the learning rate.
+
+    log : the records of a training log (`mpnode.train_log.read_log`) or its path;
+    loss : the loss' name for the axis label ("huber", "mse").  Marks the best validation
+    epoch and, with a horizon curriculum, where each window length starts.  Returns the
+    Figure; writes ``out``.
+    """
+    from .train_log import read_log
+
+    records = read_log(log) if isinstance(log, (str, os.PathLike)) else list(log)
+    if not records:
+        raise InputError(str(log), "log", "has no epochs", "the log of a training run that started")
+    nmse = _series(records, "val_nmse")
+    fig = _figure()
+    axes = fig.subplots(3 if np.isfinite(nmse).any() else 2, 1, sharex=True,
+                        height_ratios=[3, 1.5, 1] if np.isfinite(nmse).any() else [3, 1])
+    epochs = np.array([r["epoch"] for r in records])
+    _loss_panel(axes[0], records, epochs, loss)
+    if len(axes) == 3:
+        axes[1].plot(epochs, _loggable(nmse), color="C4", lw=1.6)
+        _log_axis(axes[1], nmse)
+        axes[1].set_ylabel("validation\nnormalised MSE")
+    lr = _series(records, "lr")
+    axes[-1].step(epochs, lr, where="post", color="C2", lw=1.6)
+    if np.nanmax(lr) > np.nanmin(lr):
+        _log_axis(axes[-1], lr)
+    else:  # a constant rate: a log axis would only show its tick labels crowding
+        axes[-1].set_ylim(0, 1.5 * lr[0] if lr[0] > 0 else 1)
+    axes[-1].set_ylabel("learning rate")
+    axes[-1].set_xlabel("epoch")
+    fig.suptitle(f"{title or 'training'}: {epochs[-1]} epochs in {_duration(records[-1].get('elapsed') or 0.0)}")
+    return _finish(fig, out)
+
+
+def _series(records, key):
+    """records[k][key] as float64, NaN where missing (an old log, epoch 0's training loss)."""
+    return np.array([np.nan if r.get(key) is None else r[key] for r in records], dtype=np.float64)
+
+
+def _loss_panel(ax, records, epochs, loss):
+    """Training and validation loss, the best validation epoch, the curriculum stages."""
+    for key, label, color in (("train_loss", "training", "C0"), ("val_loss", "validation", "C1")):
+        ax.plot(epochs, _loggable(_series(records, key)), color=color, lw=1.6, label=f"{label} loss")
+    val = _loggable(_series(records, "val_loss"))
+    if np.isfinite(val).any():
+        best = int(np.nanargmin(val))
+        ax.plot(epochs[best], val[best], "*", color="C3", ms=14,
+                label=f"best validation: {val[best]:.4g} at epoch {epochs[best]}")
+    _windows(ax, records)
+    _log_axis(ax, np.concatenate([_series(records, "train_loss"), _series(records, "val_loss")]))
+    ax.set_ylabel(f"{loss + ' ' if loss else ''}loss per node\n(normalised states)")
+    ax.legend(loc="upper right", framealpha=0.85)
+
+
+def _windows(ax, records):
+    """Dashed lines where a horizon curriculum starts a stage (none without a curriculum)."""
+    stages = [r.get("stage") for r in records]
+    last_stage = max((st for st in stages if st is not None), default=0)
+    if last_stage == 0:
+        return
+    previous = None
+    for r, stage in zip(records, stages):
+        if stage is not None and stage != previous:
+            w = r.get("window")
+            label = f"full horizon ({w} steps)" if stage == last_stage else f"window {w} steps"
+            ax.axvline(r["epoch"], color="0.4", lw=1, ls="--")
+            ax.text(r["epoch"], 0.98, " " + label, rotation=90, va="top", ha="left", fontsize=9, color="0.3",
+                    transform=ax.get_xaxis_transform())
+        previous = stage
+
+
+def _log_axis(ax, values):
+    """A log y-axis labelled in plain numbers (0.5, 2, 50) when the data span under two decades."""
+    from matplotlib import ticker
+
+    v = _loggable(values)
+    if not np.isfinite(v).any():
+        return
+    ax.set_yscale("log")
+    ratio = np.nanmax(v) / np.nanmin(v)
+    if ratio < 100:  # few decades: label more than the powers of ten, as plain numbers
+        plain = ticker.FuncFormatter(lambda y, _: f"{y:g}")
+        subs = np.arange(2, 10) if ratio < 3 else (2, 3, 5) if ratio < 10 else (2, 5)
+        ax.yaxis.set_major_formatter(plain)
+        ax.yaxis.set_minor_locator(ticker.LogLocator(subs=subs))
+        ax.yaxis.set_minor_formatter(plain)
+
+
+def _duration(seconds):
+    return f"{seconds:.3g} s" if seconds < 120 else f"{seconds / 60:.3g} min" if seconds < 7200 \
+        else f"{seconds / 3600:.3g} h"

@@ -42,6 +42,8 @@ import math
 
 import numpy as np
 
+from .metrics import blow_up_mask
+
 DEFAULT_TOL = 1e-4
 DEFAULT_MAX_SUBSTEPS = 64
 DEFAULT_PROBE_STEPS = 20
@@ -145,7 +147,7 @@ def stability_check(model, x0, graph, u, pred, bad, tol=DEFAULT_TOL, probe_steps
 
     model : the Model as rolled out (its spec.substeps is the s used)
     x0 : (B, N, dx);  graph : Graph or list of B Graphs;  u : (B, T, N, du) or None
-    pred : (B, T+1, N, dx) the rollout;  bad : (B, T+1) its blow-up mask (evaluate.blow_up_mask)
+    pred : (B, T+1, N, dx) the rollout;  bad : (B, T+1) its blow-up mask (metrics.blow_up_mask)
     box : (mid, r) of the blow-up test for re-rolled trajectories (outside mid +- 5 r per
         dimension, or non-finite, is a blow-up)
 
@@ -173,13 +175,9 @@ def stability_check(model, x0, graph, u, pred, bad, tol=DEFAULT_TOL, probe_steps
         sel = blown[sample_indices(len(blown), sample, x0.shape[1])]
         gsel = _pick(graph, sel)
         usel = None if u is None else np.asarray(u)[sel]
-        mid, r = box
         t = 2 * s
         while t <= max_substeps:
-            p = _rollout(model, t, x0[sel], gsel, usel, horizon)
-            with np.errstate(invalid="ignore", over="ignore"):
-                ok = np.abs(p - mid) <= 5 * r
-            if ok.all():
+            if not blow_up_mask(_rollout(model, t, x0[sel], gsel, usel, horizon), box=box).any():
                 stable = t
                 break
             t *= 2

@@ -3,6 +3,7 @@ import json
 import os
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from mpnode.cli.main import main
@@ -104,3 +105,53 @@ def test_train_a_scene_in_one_command(tmp_path):
     assert res.exit_code == 0, res.output
     assert os.path.exists(f"{out}.data.h5") and read_trajectories(f"{out}.data.h5").n_trajectories == 10
     assert "speed against error" in res.output and "fresh coupled_pendulum" in res.output
+
+
+def gene_file(path, B=6, T=4):
+    from dataclasses import replace
+
+    from mpnode.data import write_trajectories
+    from mpnode.data_gen import generate, load_scene
+
+    write_trajectories(path, generate(replace(load_scene("gene16_ba"), trajectories=B, horizon=T), workers=1))
+    return path
+
+
+def test_the_recipe_fills_what_the_user_leaves_unset(tmp_path):
+    data = gene_file(tmp_path / "g.h5")
+    res = run("train", data, "-o", tmp_path / "auto.h5", "--epochs", 1, "--hidden", 8)
+    assert res.exit_code == 0, res.output
+    assert "recipe auto for gene: aggregation scaled" in res.output
+    auto = Model.load(tmp_path / "auto.h5")
+    assert auto.spec.aggregation == "scaled" and auto.attrs["recipe"] == "auto"
+    assert auto.spec.mean_degree == pytest.approx(8.0)  # BA(16, 8): 64 edges, both directions, over 16 nodes
+    res = run("train", data, "-o", tmp_path / "paper.h5", "--epochs", 1, "--hidden", 8, "--recipe", "paper")
+    assert res.exit_code == 0 and Model.load(tmp_path / "paper.h5").spec.aggregation == "mean"
+    res = run("train", data, "-o", tmp_path / "sum.h5", "--epochs", 1, "--hidden", 8, "--aggregate", "sum")
+    assert res.exit_code == 0 and Model.load(tmp_path / "sum.h5").spec.aggregation == "sum"
+
+
+@pytest.mark.parametrize("kind", ["l2s", "node"])
+def test_every_command_takes_every_kind(tmp_path, kind):
+    data = tiny_file(tmp_path / "d.h5")
+    out = tmp_path / f"{kind}.h5"
+    res = run("train", data, "-o", out, "--model", kind, "--epochs", 2, "--hidden", 8, *QUICK)
+    assert res.exit_code == 0, res.output
+    m = Model.load(out)
+    assert m.kind == kind
+    res = run("eval", out, data, "--predictions", tmp_path / "p.h5", "--reference-sample", 0)
+    assert res.exit_code == 0, res.output
+    res = run("finetune", out, data, "-o", tmp_path / "f.h5", "--epochs", 1)
+    assert res.exit_code == 0 and Model.load(tmp_path / "f.h5").kind == kind
+    res = run("train", data, "-o", out, "--model", kind, "--epochs", 3, "--resume")
+    assert res.exit_code == 0 and "resuming at epoch 2" in res.output
+    res = run("simulate", out, "coupled_pendulum", "-o", tmp_path / "s.h5", "-B", 2, "-T", 3)
+    assert res.exit_code == 0, res.output  # two nodes: the graph of tiny_file, the pendulum pair's size
+    res = run("inspect", out)
+    assert res.exit_code == 0 and f"kind:        {kind}" in res.output
+
+
+def test_a_node_model_refuses_a_scene_of_another_size(tmp_path):
+    Model.create(3, 0, 0, 8, 0.05, kind="node", n_nodes=3).save(tmp_path / "n.h5")
+    res = run("simulate", tmp_path / "n.h5", "lorenz7", "-o", tmp_path / "s.h5", "-B", 2)
+    assert res.exit_code == 2 and "exactly 3 nodes" in res.output and "Traceback" not in res.output

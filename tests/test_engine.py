@@ -1,90 +1,28 @@
-"""The engine (mpnode.kernels via mpnode.integrate): layers, rollouts and exact gradients.
+"""The engine (mpnode.kernels via mpnode.engine): layers, rollouts and exact gradients.
 
 Everything correctness-related runs in float64 against the pure-NumPy reference in
 engine_helpers.py or against central finite differences.  Both drivers are covered:
 ``blocks`` (closed pieces of the graph, one thread per block) and ``stagewise`` (one
 big graph, a parallel loop over tiles per RK stage).  The ``driver`` fixture forces the
-stagewise driver on small graphs by making integrate.plan_for say "one big graph",
+stagewise driver on small graphs by making engine.plan_for say "one big graph",
 and spies on the kernel entry points so a test fails if the intended driver did not run.
 The block driver itself has two ways to aggregate messages: CSR rows, and one dense GEMM
 for a block made of copies of one small graph; the test graphs contain both kinds of
 block (checked by test_test_graphs_cover_dense_and_csr_blocks).
 """
-import copy
 import dataclasses
 
 import numba
 import numpy as np
 import pytest
 
-from engine_helpers import (aggregation_matrix, loss_ref, make_graph, mlp_ref, permute_graph, random_theta,
-                            rollout_ref, unpack)
-from mpnode import integrate, kernels
+from conftest import DRIVER_ENTRY_POINTS, _spy
+from engine_helpers import (aggregation_matrix, loss_ref, make_graph, mixed_graph, mlp_ref, permute_graph, problem,
+                            random_theta, rel, rollout_ref, spec_, unpack)
+from mpnode import engine, kernels, losses
+from mpnode.engine import FieldSpec
 from mpnode.graph import Graph, block_diagonal
-from mpnode.integrate import FieldSpec
-
-DRIVER_ENTRY_POINTS = ("rollout_blocks", "rollout_stagewise", "loss_grad_blocks", "loss_grad_stagewise")
-
-
-def _spy(fn, name, calls):
-    def wrapper(*args, **kwargs):
-        calls.append(name)
-        return fn(*args, **kwargs)
-
-    return wrapper
-
-
-@pytest.fixture(params=["blocks", "stagewise"])
-def driver(request, monkeypatch):
-    """Run the test with the given driver; afterwards check that only that driver ran."""
-    calls = []
-    for name in DRIVER_ENTRY_POINTS:
-        monkeypatch.setattr(kernels, name, _spy(getattr(kernels, name), name, calls))
-    if request.param == "stagewise":
-        real_plan_for = integrate.plan_for
-
-        def stagewise_plan(*args, **kwargs):
-            plan = copy.copy(real_plan_for(*args, **kwargs))  # a copy: the real one is cached
-            plan.blocks = None
-            return plan
-
-        monkeypatch.setattr(integrate, "plan_for", stagewise_plan)
-    yield request.param
-    assert calls, "no driver ran"
-    assert all(c.endswith(request.param) for c in calls), f"expected the {request.param} driver, ran {calls}"
-
-
-def spec_(**kw):
-    base = dict(state_dim=2, control_dim=2, message_dim=3, hidden=8, dt=0.1, substeps=3)
-    base.update(kw)
-    return FieldSpec(**base)
-
-
-def mixed_graph(seed=0, big=150):
-    """A batch: three copies of one 9-node graph, then one ``big``-node graph (nodes 27..).
-
-    Each graph has an isolated node and directed edges (engine_helpers.make_graph).  The
-    copies make a dense block, the big graph a CSR block that crosses TILE = 128 inside
-    the block; as one graph it spans two tiles, so the stagewise driver meets edges
-    across tiles.
-    """
-    rng = np.random.default_rng(seed)
-    g9 = make_graph(rng, 9)
-    return block_diagonal([g9, g9, g9, make_graph(rng, big)])
-
-
-def problem(spec, graph, T, seed=1, dtype=np.float64):
-    rng = np.random.default_rng(seed)
-    M = graph.n_nodes
-    theta = random_theta(rng, spec, dtype=dtype)
-    x0 = rng.standard_normal((M, spec.state_dim))
-    u = rng.standard_normal((T, M, spec.control_dim)) if spec.control_dim else None
-    return theta, x0, u
-
-
-def rel(a, b):
-    return np.linalg.norm(np.ravel(a) - np.ravel(b)) / max(np.linalg.norm(np.ravel(b)), 1e-300)
-
+from mpnode.kernels import mpnode_field
 
 # ---------------------------------------------------------------------------
 # 1. Layer VJPs against central finite differences
@@ -163,16 +101,16 @@ def test_mlp_vjp_matches_finite_differences():
 
     def f():
         H1, H2 = np.empty((n, H)), np.empty((n, H))
-        return np.sum(GK * kernels.mlp_forward(theta, V, H1, H2, dout))
+        return np.sum(GK * mpnode_field.mlp_forward(theta, V, H1, H2, dout))
 
     H1, H2 = np.empty((n, H)), np.empty((n, H))
-    K = kernels.mlp_forward(theta, V, H1, H2, dout)
+    K = mpnode_field.mlp_forward(theta, V, H1, H2, dout)
     np.testing.assert_allclose(K, mlp_ref(theta, V, dout), rtol=1e-12, atol=1e-13)
     p = unpack(theta, din, H, dout)
     np.testing.assert_allclose(H1, np.tanh(V @ p["W1"] + p["b1"]), rtol=1e-13, atol=1e-14)
     gtheta0 = rng.standard_normal(theta.size)
     gtheta = gtheta0.copy()
-    GV = kernels.mlp_backward(theta, V, H1, H2, GK.copy(), gtheta)
+    GV = mpnode_field.mlp_backward(theta, V, H1, H2, GK.copy(), gtheta)
     fV, ftheta = fd_grad(f, [V, theta])
     assert rel(GV, fV) < 1e-6
     g = gtheta - gtheta0
@@ -191,7 +129,7 @@ def test_rollout_matches_reference(driver, self_messages, zero_messages):
     graph = mixed_graph()
     T = 3
     theta, x0, u = problem(spec, graph, T)
-    got = integrate.rollout(spec, theta, x0, graph, u, T)
+    got = engine.forward(spec, theta, x0, graph, u, T)
     want = rollout_ref(spec, theta, x0, graph, u, T)
     assert got.shape == (T + 1, graph.n_nodes, spec.state_dim) and got.dtype == np.float64
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
@@ -205,10 +143,10 @@ def test_rollout_matches_reference(driver, self_messages, zero_messages):
 def test_rollout_matches_reference_small_dims(driver, spec):
     for graph in (mixed_graph(3), Graph.from_edges(6, [])):  # the second has no edges at all
         theta, x0, u = problem(spec, graph, 3)
-        np.testing.assert_allclose(integrate.rollout(spec, theta, x0, graph, u, 3),
+        np.testing.assert_allclose(engine.forward(spec, theta, x0, graph, u, 3),
                                    rollout_ref(spec, theta, x0, graph, u, 3), rtol=1e-12, atol=1e-12)
         x = targets_off_the_kink(rollout_ref(spec, theta, x0, graph, u, 3), np.random.default_rng(2))
-        loss, gtheta, gx0 = integrate.loss_and_grad(spec, theta, x, graph, u)
+        loss, gtheta, gx0 = losses.value_and_grad(spec, theta, x, graph, u)
         assert abs(loss - loss_ref(rollout_ref(spec, theta, x0, graph, u, 3), x, "huber", graph.n_nodes)) < 1e-12 * loss
         assert np.all(np.isfinite(gtheta)) and np.all(np.isfinite(gx0))
 
@@ -231,7 +169,7 @@ def test_one_big_graph_runs_stagewise_and_matches_reference(monkeypatch):
     graph = make_graph(np.random.default_rng(5), n)
     spec = spec_(self_messages=True, substeps=2)
     theta, x0, u = problem(spec, graph, 2)
-    got = integrate.rollout(spec, theta, x0, graph, u, 2)
+    got = engine.forward(spec, theta, x0, graph, u, 2)
     assert calls == ["rollout_stagewise"]
     np.testing.assert_allclose(got, rollout_ref(spec, theta, x0, graph, u, 2), rtol=1e-12, atol=1e-12)
 
@@ -243,7 +181,7 @@ def test_test_graphs_cover_dense_and_csr_blocks():
     covering one of the two aggregation paths.
     """
     for big in (150, 140):
-        plan = integrate.plan_for(mixed_graph(big=big), False, np.float64)
+        plan = engine.plan_for(mixed_graph(big=big), spec_(), np.float64)
         assert plan.blocks is not None
         assert np.any(plan.dense_n > 0) and np.any(plan.dense_n == 0), (plan.blocks, plan.dense_n)
 
@@ -264,16 +202,16 @@ def test_graph_with_self_loops_matches_reference(driver, self_messages):
     T = 3
     theta, x0, u = problem(spec, batch, T, seed=31)
     want = rollout_ref(spec, theta, x0, batch, u, T)
-    np.testing.assert_allclose(integrate.rollout(spec, theta, x0, batch, u, T), want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(engine.forward(spec, theta, x0, batch, u, T), want, rtol=1e-12, atol=1e-12)
     x = targets_off_the_kink(want, np.random.default_rng(32))
-    loss, gtheta, gx0 = integrate.loss_and_grad(spec, theta, x, batch, u)
+    loss, gtheta, gx0 = losses.value_and_grad(spec, theta, x, batch, u)
     assert abs(loss - loss_ref(want, x, "huber", batch.n_nodes)) < 1e-12 * loss
     gsum = np.zeros_like(gtheta)
     for c in range(copies):
         s = slice(5 * c, 5 * c + 5)
-        np.testing.assert_allclose(integrate.rollout(spec, theta, x0[s], g, u[:, s], T), want[:, s],
+        np.testing.assert_allclose(engine.forward(spec, theta, x0[s], g, u[:, s], T), want[:, s],
                                    rtol=1e-12, atol=1e-12)
-        _, gi, gx0i = integrate.loss_and_grad(spec, theta, x[:, s], g, u[:, s], n_nodes_total=batch.n_nodes)
+        _, gi, gx0i = losses.value_and_grad(spec, theta, x[:, s], g, u[:, s], n_nodes=batch.n_nodes)
         np.testing.assert_allclose(gx0i, gx0[s], rtol=1e-10, atol=1e-12 * np.abs(gx0).max())
         gsum += gi
     np.testing.assert_allclose(gsum, gtheta, rtol=1e-10, atol=1e-12 * np.abs(gtheta).max())
@@ -303,7 +241,7 @@ def test_gradient_matches_finite_differences(driver, kind, self_messages, zero_m
     T = 3
     theta, x0, u = problem(spec, graph, T, seed=8)
     x = targets_off_the_kink(rollout_ref(spec, theta, x0, graph, u, T), rng)
-    loss, gtheta, gx0 = integrate.loss_and_grad(spec, theta, x, graph, u, kind)
+    loss, gtheta, gx0 = losses.value_and_grad(spec, theta, x, graph, u, kind)
     assert gtheta.shape == theta.shape and gx0.shape == x0.shape
     # the loss value itself against the reference
     assert abs(loss - loss_ref(rollout_ref(spec, theta, x0, graph, u, T), x, kind, graph.n_nodes)) < 1e-12 * loss
@@ -311,7 +249,7 @@ def test_gradient_matches_finite_differences(driver, kind, self_messages, zero_m
     def L(th, x0_):
         xx = x.copy()
         xx[0] = x0_
-        return integrate.loss_and_grad(spec, th, xx, graph, u, kind)[0]
+        return losses.value_and_grad(spec, th, xx, graph, u, kind)[0]
 
     # Random directions of unit norm, step 1e-4 (about 1e-5 per coordinate): the truncation
     # error (~step^2) and the rounding noise (~1e-16 * loss / step) are both <= ~1e-8 relative.
@@ -362,10 +300,10 @@ def test_rk4_global_error_is_fourth_order():
     graph = make_graph(np.random.default_rng(11), 9)
     T = 4
     theta, x0, u = problem(spec, graph, T, seed=12)
-    exact = integrate.rollout(dataclasses.replace(spec, substeps=256), theta, x0, graph, u, T)
+    exact = engine.forward(dataclasses.replace(spec, substeps=256), theta, x0, graph, u, T)
     np.testing.assert_allclose(exact, rollout_ref(dataclasses.replace(spec, substeps=256), theta, x0, graph, u, T),
                                rtol=1e-11, atol=1e-11)
-    errs = [np.abs(integrate.rollout(dataclasses.replace(spec, substeps=s), theta, x0, graph, u, T) - exact).max()
+    errs = [np.abs(engine.forward(dataclasses.replace(spec, substeps=s), theta, x0, graph, u, T) - exact).max()
             for s in (2, 4, 8)]
     assert errs[-1] > 1e-11, errs  # well above rounding, so the ratios measure truncation
     for coarse, fine in zip(errs[:-1], errs[1:]):
@@ -386,15 +324,15 @@ def test_relabelling_nodes_permutes_rollout_and_gradient(driver):
     px0[perm] = x0
     pu = np.empty_like(u)
     pu[:, perm] = u
-    out = integrate.rollout(spec, theta, x0, graph, u, T)
-    pout = integrate.rollout(spec, theta, px0, pgraph, pu, T)
+    out = engine.forward(spec, theta, x0, graph, u, T)
+    pout = engine.forward(spec, theta, px0, pgraph, pu, T)
     np.testing.assert_allclose(pout[:, perm], out, rtol=1e-12, atol=1e-12)
 
     x = out + 0.3
     px = np.empty_like(x)
     px[:, perm] = x
-    loss, gtheta, gx0 = integrate.loss_and_grad(spec, theta, x, graph, u)
-    ploss, pgtheta, pgx0 = integrate.loss_and_grad(spec, theta, px, pgraph, pu)
+    loss, gtheta, gx0 = losses.value_and_grad(spec, theta, x, graph, u)
+    ploss, pgtheta, pgx0 = losses.value_and_grad(spec, theta, px, pgraph, pu)
     assert abs(ploss - loss) <= 1e-12 * loss
     np.testing.assert_allclose(pgtheta, gtheta, rtol=1e-12, atol=1e-12 * np.abs(gtheta).max())
     np.testing.assert_allclose(pgx0[perm], gx0, rtol=1e-12, atol=1e-12 * np.abs(gx0).max())
@@ -409,21 +347,21 @@ def test_batch_equals_graphs_one_by_one():
     # different sizes, a repeated graph (B copies of one graph), and a block of > TILE nodes
     graphs = [g9, make_graph(rng, 5), g9, make_graph(rng, 20)] + [g9] * 5 + [make_graph(rng, 130)]
     batch = block_diagonal(graphs)
-    plan = integrate.plan_for(batch, True, np.float64)
+    plan = engine.plan_for(batch, spec_(self_messages=True), np.float64)
     assert len(plan.blocks) > 2  # really several blocks
     spec = spec_(self_messages=True)
     T = 3
     theta, x0, u = problem(spec, batch, T, seed=16)
-    out = integrate.rollout(spec, theta, x0, batch, u, T)
+    out = engine.forward(spec, theta, x0, batch, u, T)
     x = targets_off_the_kink(out, rng)
-    loss, gtheta, gx0 = integrate.loss_and_grad(spec, theta, x, batch, u)
+    loss, gtheta, gx0 = losses.value_and_grad(spec, theta, x, batch, u)
     M = batch.n_nodes
     lo, loss_sum, gsum = 0, 0.0, np.zeros_like(gtheta)
     for g in graphs:
         hi = lo + g.n_nodes
-        np.testing.assert_allclose(integrate.rollout(spec, theta, x0[lo:hi], g, u[:, lo:hi], T), out[:, lo:hi],
+        np.testing.assert_allclose(engine.forward(spec, theta, x0[lo:hi], g, u[:, lo:hi], T), out[:, lo:hi],
                                    rtol=1e-12, atol=1e-12)
-        li, gi, gx0i = integrate.loss_and_grad(spec, theta, x[:, lo:hi], g, u[:, lo:hi], n_nodes_total=M)
+        li, gi, gx0i = losses.value_and_grad(spec, theta, x[:, lo:hi], g, u[:, lo:hi], n_nodes=M)
         np.testing.assert_allclose(gx0i, gx0[lo:hi], rtol=1e-12, atol=1e-12 * np.abs(gx0).max())
         loss_sum += li
         gsum += gi
@@ -447,8 +385,8 @@ def test_float32_agrees_with_float64_over_50_steps(driver):
     graph = mixed_graph(17)
     T = 50
     theta, x0, u = problem(spec, graph, T, seed=18)
-    x64 = integrate.rollout(spec, theta, x0, graph, u, T)
-    x32 = integrate.rollout(spec, theta.astype(np.float32), x0.astype(np.float32), graph,
+    x64 = engine.forward(spec, theta, x0, graph, u, T)
+    x32 = engine.forward(spec, theta.astype(np.float32), x0.astype(np.float32), graph,
                             u.astype(np.float32), T)
     assert x32.dtype == np.float32
     scale = np.abs(x64).max()
@@ -456,8 +394,8 @@ def test_float32_agrees_with_float64_over_50_steps(driver):
     assert np.abs(x32 - x64).max() < 1e-5 * scale
     # the gradient too (reverse pass in float32): looser, the adjoint sums many terms
     x = targets_off_the_kink(x64, np.random.default_rng(19))
-    l64, g64, gx64 = integrate.loss_and_grad(spec, theta, x, graph, u)
-    l32, g32, gx32 = integrate.loss_and_grad(spec, theta.astype(np.float32), x, graph, u)
+    l64, g64, gx64 = losses.value_and_grad(spec, theta, x, graph, u)
+    l32, g32, gx32 = losses.value_and_grad(spec, theta.astype(np.float32), x, graph, u)
     assert g32.dtype == np.float32 and gx32.dtype == np.float32
     assert abs(l32 - l64) < 1e-5 * l64
     assert rel(g32, g64) < 1e-4 and rel(gx32, gx64) < 1e-4
@@ -475,14 +413,14 @@ def test_zero_messages_decouples_nodes(driver):
     x0b = x0.copy()
     x0b[node] += 0.5
     others = np.arange(graph.n_nodes) != node
-    a = integrate.rollout(spec, theta, x0, graph, u, T)
-    b = integrate.rollout(spec, theta, x0b, graph, u, T)
+    a = engine.forward(spec, theta, x0, graph, u, T)
+    b = engine.forward(spec, theta, x0b, graph, u, T)
     np.testing.assert_array_equal(a[:, others], b[:, others])
     assert np.abs(a[1:, node] - b[1:, node]).min() > 0
     # control: with messages on, the same change does reach the neighbours
     on = dataclasses.replace(spec, zero_messages=False)
-    a = integrate.rollout(on, theta, x0, graph, u, T)
-    b = integrate.rollout(on, theta, x0b, graph, u, T)
+    a = engine.forward(on, theta, x0, graph, u, T)
+    b = engine.forward(on, theta, x0b, graph, u, T)
     nbrs = graph.indices[graph.indptr[node]:graph.indptr[node + 1]]
     assert np.all(np.abs(a[-1, nbrs] - b[-1, nbrs]).max(axis=1) > 1e-8)
     # ... but still never the isolated node, nor the other graph of the batch
@@ -496,7 +434,7 @@ def test_zero_messages_gives_exactly_zero_message_gradients(driver):
     spec = spec_(zero_messages=True)
     theta, x0, u = problem(spec, graph, T, seed=23)
     x = targets_off_the_kink(rollout_ref(spec, theta, x0, graph, u, T), np.random.default_rng(24))
-    _, gtheta, _ = integrate.loss_and_grad(spec, theta, x, graph, u)
+    _, gtheta, _ = losses.value_and_grad(spec, theta, x, graph, u)
     dx, du, dm, H = spec.state_dim, spec.control_dim, spec.message_dim, spec.hidden
     g = unpack(gtheta, dx + du + dm, H, dx + dm)
     assert np.all(g["W3"][:, dx:] == 0) and np.all(g["b3"][dx:] == 0)
@@ -515,11 +453,11 @@ def test_gradient_is_bit_identical_across_calls(driver, dtype):
     T = 4
     theta, x0, u = problem(spec, graph, T, seed=26, dtype=dtype)
     x = targets_off_the_kink(rollout_ref(spec, theta, x0, graph, u, T), rng)
-    first = integrate.loss_and_grad(spec, theta, x, graph, u)
+    first = losses.value_and_grad(spec, theta, x, graph, u)
     for _ in range(3):
-        again = integrate.loss_and_grad(spec, theta, x, graph, u)
+        again = losses.value_and_grad(spec, theta, x, graph, u)
         assert again[0] == first[0]
         np.testing.assert_array_equal(again[1], first[1])
         np.testing.assert_array_equal(again[2], first[2])
-    r1 = integrate.rollout(spec, theta, x0, graph, u, T)
-    np.testing.assert_array_equal(integrate.rollout(spec, theta, x0, graph, u, T), r1)
+    r1 = engine.forward(spec, theta, x0, graph, u, T)
+    np.testing.assert_array_equal(engine.forward(spec, theta, x0, graph, u, T), r1)

@@ -9,7 +9,8 @@ from mpnode import train
 from mpnode.cli.main import main
 from mpnode.data import Trajectories, read_trajectories, write_trajectories
 from mpnode.errors import InputError
-from mpnode.evaluate import blow_up_mask, evaluate, nmse_per_step, prediction_file, subset
+from mpnode.evaluate import evaluate, predictions_file, subset
+from mpnode.metrics import blow_up_mask, nmse_per_step
 from mpnode.model import Model
 from test_train import fresh, tiny_linear
 
@@ -84,7 +85,8 @@ def test_prediction_file_keeps_graphs_and_names_the_model(tmp_path):
     traj = tiny_linear(B=4)
     r = evaluate(m, traj)
     out = tmp_path / "pred.h5"
-    write_trajectories(out, prediction_file(traj, r.predictions, "m.h5"))
+    write_trajectories(out, predictions_file(r.predictions, traj.graphs, traj.graph_index, traj.dt, traj.system,
+                                             "m.h5"))
     back = read_trajectories(out)
     assert back.attrs["predicted_by"] == "m.h5" and back.system == traj.system and back.dt == traj.dt
     assert back.graphs[0].equals(traj.graphs[0])
@@ -94,7 +96,7 @@ def test_prediction_file_keeps_graphs_and_names_the_model(tmp_path):
     from mpnode.errors import NumericalError
 
     with pytest.raises(NumericalError, match="non-finite"):
-        prediction_file(traj, bad, "m.h5")
+        predictions_file(bad, traj.graphs, traj.graph_index, traj.dt, traj.system, "m.h5")
 
 
 def test_cli_eval_text_json_predictions_and_dx_mismatch(tmp_path):

@@ -40,7 +40,6 @@ from mpnode.data_gen.systems import SYSTEMS
 from mpnode.errors import InputError, NumericalError
 from mpnode.graph import Graph
 from mpnode.model import Model
-from mpnode.model_file import read_model
 
 SCALE = float(os.environ.get("MPNODE_FUZZ_SCALE", "1"))
 TRIED = Counter()  # corrupted inputs tried, per reader
@@ -126,7 +125,7 @@ def model_bases(workdir):
         m.x_std = np.full(kw["state_dim"], 2.0)
         path = os.path.join(workdir, f"model{i}.h5")
         m.save(path, history="fuzz base")
-        read_model(path)
+        Model.load(path)
         out.append(path)
     return out
 
@@ -163,7 +162,7 @@ def test_damaged_model_bytes(workdir, model_bases, data):
     with Case(workdir, base, "damaged.h5") as path:
         damage(path, data)
         TRIED["model files"] += 1
-        m = assert_input_error(read_model, path, allow_valid=True)
+        m = assert_input_error(Model.load, path, allow_valid=True)
         if m is not None:
             assert np.all(np.isfinite(m.theta)) and np.all(m.x_std > 0)
 
@@ -427,7 +426,9 @@ BAD_INTS = st.sampled_from([-1, 1.5, "3", b"3", np.array([1, 2]), np.array([], d
 BAD_MODEL_ATTRS = {
     "format": st.sampled_from([5, b"\xff\xfe", np.array(["mpnode.model"] * 2, dtype=object), np.array([1, 2]),
                                "", "mpnode.trajectories", "MPNODE.MODEL"]),
-    "format_version": st.sampled_from([0, 2, "1", 1.5, np.array([1, 1]), b"\xff"]),
+    "format_version": st.sampled_from([0, 3, "1", 1.5, np.array([1, 1]), b"\xff"]),
+    "kind": st.sampled_from(["gnn", "", 1, b"\xff\xfe", np.array(["mpnode", "l2s"], dtype=object)]),
+    "aggregation": st.sampled_from(["max", "Mean", 0, b"\x80", np.array(["sum"], dtype=object)]),
     "activation": st.sampled_from(["relu", "", 1, np.array(["tanh", "tanh"], dtype=object), b"\xff\xfe"]),
     "integrator": st.sampled_from(["euler", "RK4", 4, np.array([1.0]), b"\x80"]),
     "dt": st.one_of(st.sampled_from([0.0, -0.05]), FINITE_BREAKERS, NOT_A_NUMBER),
@@ -436,9 +437,13 @@ BAD_MODEL_ATTRS = {
 }
 
 
+#: attributes with a default: a file without them is still valid
+DEFAULTED_ATTRS = ("kind", "aggregation")
+
+
 def m_attr(f, data):
     name = data.draw(st.sampled_from(sorted(BAD_MODEL_ATTRS)), label="attr")
-    if data.draw(st.booleans(), label="delete"):
+    if name not in DEFAULTED_ATTRS and data.draw(st.booleans(), label="delete"):
         del f.attrs[name]
         return
     set_attr(f, name, data.draw(BAD_MODEL_ATTRS[name], label="value"))
@@ -456,17 +461,17 @@ def test_corrupted_model_files_raise_input_error(workdir, model_bases, data):
         with h5py.File(path, "r+") as f:
             mutation(f, data)
         TRIED["model files"] += 1
-        assert_input_error(read_model, path)
+        assert_input_error(Model.load, path)
 
 
 def test_model_reader_missing_and_not_hdf5(workdir):
     path = os.path.join(workdir, "nothing.h5")
-    assert_input_error(read_model, path)
+    assert_input_error(Model.load, path)
     with open(path, "w") as f:
         f.write("not hdf5")
-    assert_input_error(read_model, path)
+    assert_input_error(Model.load, path)
     os.makedirs(os.path.join(workdir, "adir.h5"), exist_ok=True)
-    assert_input_error(read_model, os.path.join(workdir, "adir.h5"))
+    assert_input_error(Model.load, os.path.join(workdir, "adir.h5"))
     assert_input_error(read_trajectories, os.path.join(workdir, "adir.h5"))
 
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from engine_helpers import make_graph, rollout_ref
-from mpnode import InputError, NumericalError, integrate
-from mpnode.graph import block_diagonal
+from mpnode import InputError, NumericalError, engine, losses
+from mpnode.graph import Graph, block_diagonal
 from mpnode.model import Model, loss_and_grad, to_time_major
 
 DX, DU, DM, H = 2, 2, 3, 8
@@ -68,7 +68,8 @@ def test_saved_file_follows_the_model_format(tmp_path):
     m.save(path)
     with h5py.File(path, "r") as f:
         a = dict(f.attrs)
-        assert a["format"] == "mpnode.model" and a["format_version"] == 1
+        assert a["format"] == "mpnode.model" and a["format_version"] == 2
+        assert a["kind"] == "mpnode" and a["aggregation"] == "mean" and "mean_degree" not in a
         assert (a["state_dim"], a["control_dim"], a["message_dim"], a["hidden"]) == (DX, DU, DM, H)
         assert a["activation"] == "tanh" and a["integrator"] == "rk4"
         assert a["dt"] == 0.05 and a["substeps"] == 2
@@ -105,7 +106,7 @@ def test_rollout_in_data_units_is_normalise_integrate_denormalise(graph):
     flat = block_diagonal([graph] * B)
     xn0 = ((x0 - m.x_mean) / m.x_std).reshape(B * N, DX)
     un = np.ascontiguousarray(((u - m.u_mean) / m.u_std).transpose(1, 0, 2, 3)).reshape(T, B * N, DU)
-    xs = integrate.rollout(m.spec, m.theta, xn0, flat, un, T)
+    xs = engine.forward(m.spec, m.theta, xn0, flat, un, T)
     want = xs.reshape(T + 1, B, N, DX).transpose(1, 0, 2, 3) * m.x_std + m.x_mean
     np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
     # and against the independent NumPy reference, graph by graph
@@ -128,14 +129,14 @@ def test_rollout_with_a_list_of_graphs_equals_one_by_one():
         np.testing.assert_allclose(got[b], m.rollout(x0[b], g, u[b]), rtol=1e-12, atol=1e-12)
 
 
-def test_loss_and_grad_in_data_units_matches_integrate(graph):
+def test_loss_and_grad_in_data_units_matches_the_engine(graph):
     m = make_model()
     x0, u = data()
     x = m.rollout(x0, graph, u)
     x[:, 1:] += np.random.default_rng(5).uniform(-0.2, 0.2, x[:, 1:].shape)
     value, g = loss_and_grad(m, x, graph, u)
     B = x.shape[0]
-    v2, g2, _ = integrate.loss_and_grad(m.spec, m.theta, to_time_major((x - m.x_mean) / m.x_std),
+    v2, g2, _ = losses.value_and_grad(m.spec, m.theta, to_time_major((x - m.x_mean) / m.x_std),
                                         block_diagonal([graph] * B), to_time_major((u - m.u_mean) / m.u_std))
     assert abs(value - v2) <= 1e-12 * v2
     np.testing.assert_allclose(g, g2, rtol=1e-11, atol=1e-13)
@@ -185,7 +186,9 @@ def test_raw_file_loads(tmp_path):
 REQUIRED_ATTRS = ["format", "format_version", "state_dim", "control_dim", "message_dim", "hidden", "activation",
                   "dt", "substeps", "integrator", "zero_messages", "self_messages"]
 WRONG_VALUES = [
-    ("format", "mpnode.trajectories"), ("format_version", 2), ("format_version", "1"),
+    ("format", "mpnode.trajectories"), ("format_version", 3), ("format_version", "1"),
+    ("kind", "l2s"),  # a version-1 file is an MP-NODE
+    ("aggregation", "sum"),  # ... with the mean
     ("state_dim", 0), ("state_dim", 2.0), ("control_dim", -1), ("message_dim", -1), ("hidden", 0),
     ("activation", "relu"), ("dt", 0.0), ("dt", -0.1), ("dt", np.nan), ("dt", "fast"),
     ("substeps", 0), ("substeps", 1.5), ("integrator", "rk38"), ("zero_messages", 2), ("self_messages", -1),
@@ -260,6 +263,70 @@ def test_bad_dataset_is_named(tmp_path, field, mutate):
         mutate(f)
     err = load_error(path)
     assert err.field == field and field in str(err)
+
+
+# ---------------------------------------------------------------------------
+# Version 2: kinds and aggregations
+# ---------------------------------------------------------------------------
+def write_raw_v2(path, kind, aggregation=None, **extra):
+    """A version-2 file of ``kind`` written with plain h5py from the format alone."""
+    rng = np.random.default_rng(1)
+    dm = DM if kind == "mpnode" else 0
+    attrs = dict(format="mpnode.model", format_version=2, kind=kind, state_dim=DX, control_dim=0, message_dim=dm,
+                 hidden=H, activation="tanh", dt=0.1, substeps=1, integrator="rk4", zero_messages=0, self_messages=0)
+    if aggregation:
+        attrs["aggregation"] = aggregation
+    if kind == "l2s":
+        shapes = {"W_lift": (DX, H), "b_lift": (H,), "W_msg": (H, H), "b_msg": (H,), "psi": (H,), "W_upd": (H, H),
+                  "b_upd": (H,), "W_out": (H, DX), "b_out": (DX,)}
+    else:
+        n = extra.get("n_nodes", 1)
+        shapes = {"W1": (n * DX + dm, H), "b1": (H,), "W2": (H, H), "b2": (H,), "W3": (H, n * DX + dm),
+                  "b3": (n * DX + dm,)}
+    attrs.update(extra)
+    with h5py.File(path, "w") as f:
+        f.attrs.update(attrs)
+        for name, shape in shapes.items():
+            f[f"params/{name}"] = rng.standard_normal(shape)
+        f["norm/x_mean"], f["norm/x_std"] = [0.1, 0.2], [1.5, 2.5]
+    return path
+
+
+@pytest.mark.parametrize("kind,aggregation,extra,want", [
+    ("mpnode", None, {}, ("mean", None)),
+    ("mpnode", "scaled", {"mean_degree": 7.5}, ("scaled", 7.5)),
+    ("l2s", None, {}, ("sum", None)),  # the sum is l2s's default
+    ("l2s", "mean", {}, ("mean", None)),
+    ("node", None, {"n_nodes": 3}, ("mean", None)),
+])
+def test_version_2_files_of_every_kind_load_and_round_trip(tmp_path, kind, aggregation, extra, want):
+    m = Model.load(write_raw_v2(tmp_path / "m.h5", kind, aggregation, **extra))
+    assert m.kind == kind and (m.spec.aggregation, m.spec.mean_degree) == want
+    m.save(tmp_path / "again.h5")
+    back = Model.load(tmp_path / "again.h5")
+    assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
+
+
+@pytest.mark.parametrize("kind,aggregation,extra,field", [
+    ("gnn", None, {}, "kind"),
+    ("mpnode", "max", {}, "aggregation"),
+    ("mpnode", "scaled", {}, "mean_degree"),
+    ("mpnode", "scaled", {"mean_degree": 0.0}, "mean_degree"),
+    ("node", None, {}, "n_nodes"),
+    ("l2s", None, {"message_dim": 3}, "message_dim"),
+    ("l2s", None, {"zero_messages": 1}, "zero_messages"),
+])
+def test_version_2_files_that_break_a_rule_are_refused(tmp_path, kind, aggregation, extra, field):
+    err = load_error(write_raw_v2(tmp_path / "m.h5", kind, aggregation, **extra))
+    assert err.field == field, err
+
+
+def test_a_node_model_refuses_a_graph_of_another_size(tmp_path, graph):
+    m = Model.load(write_raw_v2(tmp_path / "m.h5", "node", n_nodes=3))
+    x0 = np.zeros((2, 3, DX))
+    assert m.rollout(x0, Graph.complete(3), steps=2).shape == (2, 3, 3, DX)
+    with pytest.raises(InputError, match="exactly 3 nodes"):
+        m.rollout(np.zeros((2, 4, DX)), Graph.complete(4), steps=2)
 
 
 def test_missing_and_non_hdf5_files_are_input_errors(tmp_path):

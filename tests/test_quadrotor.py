@@ -1,4 +1,4 @@
-"""quadrotor_load (data_gen/quadrotor.py) against ../shared/spec/quadrotor.md: statics, conservation
+"""quadrotor_load (data_gen/quadrotor.py) against the quadrotor specification (docs/systems.md): statics, conservation
 laws, free fall, the doorway controller and the generated files."""
 import math
 from dataclasses import replace

@@ -13,7 +13,8 @@ EXAMPLE = os.path.join(os.path.dirname(mpnode.data_gen.__file__), "scenes", "exa
 
 EXPECTED = ["coupled_pendulum", "lorenz3", "lorenz7", "lorenz10", "lorenz10_medium", "lorenz10_high",
             "gene16_er", "gene16_ba", "gene16_ws", "gene64_er", "gene64_ba", "gene64_ws", "gene16_ba_multi",
-            "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws", "quad3", "quad6"]
+            "gene16_er_hot", "gene16_ba_hot", "gene16_ws_hot", "gene64_er_hot", "gene64_ba_hot", "gene64_ws_hot",
+            "gene16_ba_multi_hot", "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws", "quad3", "quad6"]
 
 
 def test_builtin_scenes():
@@ -25,6 +26,11 @@ def test_builtin_scenes():
         assert (s.dt, s.horizon, s.trajectories) == (dt, 50, 1000)
     assert [BUILTIN[n].params["coupling"] for n in ("lorenz10", "lorenz10_medium", "lorenz10_high")] == [0.01, 1.0, 5.0]
     assert BUILTIN["gene16_ba_multi"].graph.seeds == (1, 2, 3, 4, 5)
+    # the paper's gene data start from hot spots (NDCN): same graphs, other initial states
+    for name in EXPECTED:
+        if name.endswith("_hot"):
+            hot, plain = BUILTIN[name], BUILTIN[name[:-4]]
+            assert hot.initial == "hotspots" and plain.initial == "uniform" and hot.graph == plain.graph
     assert BUILTIN["gene64_ws"].graph.args == {"k": 32, "p": 0.5}
 
 

@@ -187,7 +187,7 @@ def test_eval_reports_the_predictable_horizon(tmp_path):
 # Horizon curriculum
 # ---------------------------------------------------------------------------
 def test_window_starts_cover_the_horizon_with_consecutive_windows():
-    from mpnode.train import window_starts
+    from mpnode.batches import window_starts
 
     assert list(window_starts(10, 5)) == [0, 5]
     assert list(window_starts(10, 3)) == [0, 3, 6, 7]  # the last window ends at T
@@ -196,13 +196,13 @@ def test_window_starts_cover_the_horizon_with_consecutive_windows():
 
 
 def test_window_part_cuts_every_trajectory_into_windows_from_true_states():
-    from mpnode import train
+    from mpnode import batches, train
 
     traj = tiny_linear(B=6, T=10)
     m = fresh()
-    tr, _, _ = train.prepare(m, [traj], train.TrainConfig(val_split=0.0, noise=0.0))
+    tr, _, _ = batches.prepare(m, [traj], train.TrainConfig(val_split=0.0, noise=0.0))
     part = tr[0]
-    w = train.window_part(part, 4)  # starts 0, 4, 6
+    w = part.windows(4)  # starts 0, 4, 6
     assert w.x.shape == (5, 6 * 3, 2, 2) and w.n == 18 and w.gi.shape == (18,)
     for b in range(6):
         for j, a in enumerate([0, 4, 6]):
@@ -216,12 +216,12 @@ CURRICULUM = dict(batch_size=8, lr=1e-2, curriculum=(2, 5), curriculum_epochs=2)
 
 
 def test_curriculum_trains_logs_window_lengths_and_resumes_bit_for_bit(tmp_path):
-    from mpnode import train
+    from mpnode import train, train_log
 
     traj = tiny_linear(B=16, T=10)
     straight = train.fit(fresh(), [traj], train.TrainConfig(epochs=6, **CURRICULUM), tmp_path / "a.h5")
     assert straight.status == "completed" and np.isfinite(straight.best_val_loss)
-    log = train.read_log(train.log_path(tmp_path / "a.h5"))
+    log = train_log.read_log(train_log.log_path(tmp_path / "a.h5"))
     assert [r["window"] for r in log[1:]] == [2, 2, 5, 5, 10, 10]
     assert [r["stage"] for r in log[1:]] == [0, 0, 1, 1, 2, 2]
     assert all(r["grad_norm"] > 0 and r["grad_norm_max"] >= r["grad_norm"] for r in log[1:])
@@ -235,7 +235,7 @@ def test_curriculum_trains_logs_window_lengths_and_resumes_bit_for_bit(tmp_path)
     again = train.fit(None, [traj], train.TrainConfig(epochs=6), tmp_path / "b.h5", resume=True)
     assert np.array_equal(again.model.theta, straight.model.theta)
     strip = lambda rs: [{k: v for k, v in r.items() if k not in ("seconds", "elapsed")} for r in rs]  # noqa: E731
-    assert strip(train.read_log(train.log_path(tmp_path / "b.h5"))) == strip(log)
+    assert strip(train_log.read_log(train_log.log_path(tmp_path / "b.h5"))) == strip(log)
 
 
 def test_cli_horizon_curriculum_flags(tmp_path):
@@ -264,7 +264,7 @@ def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(t
     import sys
     import time
 
-    from mpnode import train
+    from mpnode import train, train_log
     from mpnode.model import Model
     from test_train import tiny_file
 
@@ -276,7 +276,7 @@ def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(t
     proc = subprocess.Popen([sys.executable, "-c", "from mpnode.cli.main import main; main()", "train", *args,
                              "--epochs", "100000"], stdout=subprocess.DEVNULL,
                             stderr=open(tmp_path / "stderr.txt", "w"), cwd=tmp_path)
-    log, state = train.log_path(out), train.state_path(out)
+    log, state = train_log.log_path(out), train.state_path(out)
     try:
         deadline = time.monotonic() + 120  # generous: a cold numba cache compiles first
         while time.monotonic() < deadline and proc.poll() is None:
@@ -306,20 +306,20 @@ def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(t
     res = CliRunner().invoke(main, ["train", *args, "--epochs", str(done + 2), "--resume"])
     assert res.exit_code == 0, res.output
     assert f"resuming at epoch {done}" in res.output
-    after = train.read_log(log)
+    after = train_log.read_log(log)
     assert [r["epoch"] for r in after] == list(range(done + 3))
     assert np.all(np.isfinite(Model.load(out).theta))
 
 
 def test_read_log_tolerates_only_a_cut_last_line(tmp_path):
-    from mpnode import train
+    from mpnode import train_log
 
     p = tmp_path / "m.h5.log.jsonl"
     p.write_text('{"epoch": 0}\n{"epoch": 1}\n{"epo')
-    assert train.read_log(p) == [{"epoch": 0}, {"epoch": 1}]
+    assert train_log.read_log(p) == [{"epoch": 0}, {"epoch": 1}]
     p.write_text('{"epoch": 0}\n{"epo\n{"epoch": 2}\n')
     with pytest.raises(ValueError):
-        train.read_log(p)
+        train_log.read_log(p)
 
 
 def test_learned_lorenz_model_stays_bounded_over_a_long_horizon_and_eval_finds_its_horizon():

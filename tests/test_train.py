@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from mpnode import train
+from mpnode import batches, train, train_log
 from mpnode.data import Trajectories, write_trajectories
 from mpnode.graph import Graph
 from mpnode.model import Model
@@ -58,17 +58,17 @@ def test_training_reduces_validation_loss_tenfold():
 
 
 def test_validation_loss_is_the_training_loss_without_noise():
-    from mpnode import integrate
+    from mpnode import engine, losses
 
     m = fresh()
     traj = tiny_linear()
     cfg = train.TrainConfig(noise=0.0)
-    tr, va, _ = train.prepare(m, [traj], cfg)
+    tr, va, _ = batches.prepare(m, [traj], cfg)
     x, u, g = tr[0].batch(np.arange(tr[0].n))
     for loss in ("huber", "mse"):
-        ref, _, _ = integrate.loss_and_grad(m.spec, m.theta, x, g, u, loss)
-        pred = integrate.rollout(m.spec, m.theta, x[0], g, u, x.shape[0] - 1)
-        assert train.rollout_loss(pred, x, loss) == pytest.approx(ref, rel=1e-5)
+        ref, _, _ = losses.value_and_grad(m.spec, m.theta, x, g, u, loss)
+        pred = engine.forward(m.spec, m.theta, x[0], g, u, x.shape[0] - 1)
+        assert losses.value(pred, x, loss) == pytest.approx(ref, rel=1e-5)
 
 
 def test_normalisation_is_fitted_on_the_training_split_only():
@@ -76,7 +76,7 @@ def test_normalisation_is_fitted_on_the_training_split_only():
     traj.x[:, :, :, 0] += np.arange(20)[:, None, None]  # every trajectory has its own level
     m = fresh()
     cfg = train.TrainConfig(val_split=0.3, seed=3)
-    _, _, split = train.prepare(m, [traj], cfg)
+    _, _, split = batches.prepare(m, [traj], cfg)
     tr, va = split[0]
     assert len(va) == 6 and len(tr) == 14 and not set(tr) & set(va)
     want = traj.x[tr].reshape(-1, 2)
@@ -84,8 +84,8 @@ def test_normalisation_is_fitted_on_the_training_split_only():
     np.testing.assert_allclose(m.x_std, want.std(axis=0))
     assert not np.allclose(m.x_mean, traj.x.reshape(-1, 2).mean(axis=0))
     # the split depends on the seed only
-    assert np.array_equal(train.split_indices(20, 0.3, 3)[1], va)
-    assert not np.array_equal(train.split_indices(20, 0.3, 4)[1], va)
+    assert np.array_equal(batches.split_indices(20, 0.3, 3)[1], va)
+    assert not np.array_equal(batches.split_indices(20, 0.3, 4)[1], va)
 
 
 def test_finetune_starts_from_exactly_the_given_weights(tmp_path):
@@ -101,8 +101,8 @@ def test_finetune_starts_from_exactly_the_given_weights(tmp_path):
     r = train.fit(src, [tiny_linear()], train.TrainConfig(epochs=2, norm="keep", **FAST))
     assert np.array_equal(src.theta, before)
     m0 = src.copy()
-    _, va, _ = train.prepare(m0, [tiny_linear()], train.TrainConfig(norm="keep"))
-    assert r.history[0]["val_loss"] == pytest.approx(train._Validator(va, "huber")(m0.spec, m0.theta), rel=1e-12)
+    _, va, _ = batches.prepare(m0, [tiny_linear()], train.TrainConfig(norm="keep"))
+    assert r.history[0]["val_loss"] == pytest.approx(train.Validator(va, "huber")(m0.spec, m0.theta)[0], rel=1e-12)
 
 
 def test_saved_model_reloads_bit_for_bit_and_rolls_out_identically(tmp_path):
@@ -141,6 +141,16 @@ def test_resume_continues_the_same_run(tmp_path):
     assert [h["epoch"] for h in logs[1]] == list(range(11))
 
 
+def test_the_logged_validation_nmse_is_what_eval_reports_on_the_validation_split(tmp_path):
+    from mpnode.evaluate import evaluate, subset
+
+    traj = tiny_linear(B=30)
+    r = train.fit(fresh(), [traj], train.TrainConfig(epochs=3, **FAST), tmp_path / "m.h5")
+    best = r.history[r.best_epoch]
+    got = evaluate(r.model, subset(traj, r.split[0][1]), check_stability=False).nmse
+    assert best["val_nmse"] == pytest.approx(got, rel=1e-4)  # float32 rollouts, float64 sums
+
+
 def test_resume_refuses_other_data(tmp_path):
     from mpnode.errors import InputError
 
@@ -163,9 +173,9 @@ def test_huge_learning_rate_stops_with_a_message_and_a_finite_model(tmp_path):
 
 
 def test_non_finite_gradient_is_skipped_and_halves_the_learning_rate(monkeypatch):
-    from mpnode import integrate
+    from mpnode import losses
 
-    real = integrate.loss_and_grad
+    real = losses.value_and_grad
     calls = {"n": 0}
 
     def flaky(*a, **k):
@@ -176,7 +186,7 @@ def test_non_finite_gradient_is_skipped_and_halves_the_learning_rate(monkeypatch
             g[0] = np.nan
         return loss, g, gx
 
-    monkeypatch.setattr(integrate, "loss_and_grad", flaky)
+    monkeypatch.setattr(losses, "value_and_grad", flaky)
     msgs = []
     r = train.fit(fresh(), [tiny_linear()], train.TrainConfig(epochs=2, batch_size=8, lr=1e-2), notify=msgs.append)
     assert r.status == "completed"
@@ -230,7 +240,7 @@ def test_training_log_is_valid_json_lines(tmp_path):
     def strict(c):
         raise ValueError(f"non-standard JSON constant {c}")
 
-    lines = open(train.log_path(out)).read().splitlines()
+    lines = open(train_log.log_path(out)).read().splitlines()
     records = [json.loads(line, parse_constant=strict) for line in lines]
     assert [r["epoch"] for r in records] == [0, 1, 2, 3]
     for r in records[1:]:
@@ -241,15 +251,15 @@ def test_training_log_is_valid_json_lines(tmp_path):
 def test_epoch_batches_cover_every_trajectory_once_and_mix_files():
     m = fresh()
     a, b = tiny_linear(B=30), tiny_linear(B=12, seed=1)
-    tr, _, _ = train.prepare(m, [a, b], train.TrainConfig(val_split=0.25))
-    batches = train.epoch_batches(tr, 8, seed=0, epoch=1)
+    tr, _, _ = batches.prepare(m, [a, b], train.TrainConfig(val_split=0.25))
+    epoch = batches.epoch_batches(tr, 8, seed=0, epoch=1)
     for p in (0, 1):
-        got = np.sort(np.concatenate([s for q, s in batches if q == p]))
+        got = np.sort(np.concatenate([s for q, s in epoch if q == p]))
         assert np.array_equal(got, np.arange(tr[p].n))
-    assert all(len(s) <= 8 for _, s in batches)
-    assert [q for q, _ in batches] != sorted(q for q, _ in batches) or len(set(q for q, _ in batches)) == 1
-    again = train.epoch_batches(tr, 8, seed=0, epoch=1)
-    assert all(p == q and np.array_equal(s, t) for (p, s), (q, t) in zip(batches, again))
+    assert all(len(s) <= 8 for _, s in epoch)
+    assert [q for q, _ in epoch] != sorted(q for q, _ in epoch) or len(set(q for q, _ in epoch)) == 1
+    again = batches.epoch_batches(tr, 8, seed=0, epoch=1)
+    assert all(p == q and np.array_equal(s, t) for (p, s), (q, t) in zip(epoch, again))
 
 
 def test_files_with_different_graphs_and_node_counts_train_together():
@@ -270,3 +280,89 @@ def test_incompatible_files_are_refused():
         train.fit(fresh(), [a, b], train.TrainConfig(epochs=1), sources=["a.h5", "b.h5"])
     with pytest.raises(InputError, match="state dimensions"):
         train.fit(Model.create(3, 0, 3, 8, 0.1), [a], train.TrainConfig(epochs=1))
+
+
+# ---------------------------------------------------------------------------
+# Schedules, held-out graphs, the time budget
+# ---------------------------------------------------------------------------
+def test_cosine_schedule_anneals_from_lr_to_min_lr_over_the_epochs_and_resumes_exactly(tmp_path):
+    traj = tiny_linear()
+    cfg = dict(batch_size=8, lr=1e-2, min_lr=1e-4, schedule="cosine")
+    r = train.fit(fresh(), [traj], train.TrainConfig(epochs=8, **cfg), tmp_path / "a.h5")
+    lrs = [h["lr"] for h in r.history[1:]]  # the rate set for the next epoch, after each epoch
+    want = [1e-4 + (1e-2 - 1e-4) * 0.5 * (1 + math.cos(math.pi * e / 8)) for e in range(1, 9)]
+    np.testing.assert_allclose(lrs, want, rtol=1e-12)
+    assert lrs[-1] == pytest.approx(1e-4)
+
+    def stop_at_3(record):  # an 8-epoch run interrupted after epoch 3 ...
+        if record["epoch"] == 3:
+            raise KeyboardInterrupt
+
+    cut = train.fit(fresh(), [traj], train.TrainConfig(epochs=8, **cfg), tmp_path / "b.h5", progress=stop_at_3)
+    assert cut.status == "interrupted" and cut.epoch == 3
+    again = train.fit(None, [traj], train.TrainConfig(epochs=8), tmp_path / "b.h5", resume=True)
+    assert np.array_equal(again.model.theta, r.model.theta)  # ... resumes into the same run
+
+
+def test_a_bad_step_scales_the_cosine_schedule_down(tmp_path, monkeypatch):
+    from mpnode import losses
+
+    real = losses.value_and_grad
+    calls = {"n": 0}
+
+    def flaky(*a, **k):
+        calls["n"] += 1
+        loss, g, gx = real(*a, **k)
+        return (math.nan if calls["n"] == 2 else loss), g, gx
+
+    monkeypatch.setattr(losses, "value_and_grad", flaky)
+    r = train.fit(fresh(), [tiny_linear()], train.TrainConfig(epochs=4, batch_size=8, lr=1e-2, min_lr=0.0,
+                                                              schedule="cosine"))
+    want = [0.5 * 1e-2 * 0.5 * (1 + math.cos(math.pi * e / 4)) for e in range(1, 5)]
+    np.testing.assert_allclose([h["lr"] for h in r.history[1:]], want, rtol=1e-12)
+
+
+def multi_graph_file(B=40):
+    """tiny_linear dynamics on 4 distinct 2-node graphs (the same edge in different node orders)."""
+    t = tiny_linear(B=B)
+    graphs = [Graph.from_edges(2, [(0, 1)]), Graph.from_edges(2, [(1, 0)], directed=True),
+              Graph.from_edges(2, [(0, 1)], directed=True), Graph.from_edges(2, [])]
+    return Trajectories(x=t.x, graphs=graphs, dt=t.dt, system=t.system, graph_index=np.arange(B) % 4)
+
+
+def test_val_graphs_holds_out_whole_graphs():
+    traj = multi_graph_file()
+    m = fresh()
+    _, _, split = batches.prepare(m, [traj], train.TrainConfig(val_graphs=1, seed=5))
+    tr, va = split[0]
+    held = set(traj.graph_index[va])
+    assert len(held) == 1 and not held & set(traj.graph_index[tr])
+    assert len(tr) + len(va) == traj.n_trajectories
+    # the same seed holds out the same graph; a file with too few graphs keeps the random split
+    assert np.array_equal(batches.prepare(fresh(), [traj], train.TrainConfig(val_graphs=1, seed=5))[2][0][1], va)
+    one = tiny_linear(B=20)
+    _, _, split = batches.prepare(fresh(), [one], train.TrainConfig(val_graphs=1, val_split=0.25))
+    assert len(split[0][1]) == 5
+
+
+def test_the_time_limit_counts_the_whole_run_across_resumes(tmp_path):
+    traj = tiny_linear()
+    first = train.fit(fresh(), [traj], train.TrainConfig(epochs=3, batch_size=8), tmp_path / "m.h5")
+    limit = first.seconds * 0.5  # already spent: a resumed run with this limit stops after one epoch
+    again = train.fit(None, [traj], train.TrainConfig(epochs=50, time_limit=limit), tmp_path / "m.h5", resume=True)
+    assert again.status == "time_limit" and again.epoch == 4
+
+
+def test_the_scaled_aggregation_divides_by_the_training_graphs_mean_in_degree():
+    from mpnode import runs
+
+    traj = multi_graph_file()  # graphs with 2, 1, 1, 0 directed edges on 2 nodes, used in turn
+    assert runs.mean_in_degree([traj], False) == pytest.approx((2 + 1 + 1 + 0) / 4 / 2)
+    assert runs.mean_in_degree([traj], True) == pytest.approx((2 + 1 + 1 + 0) / 4 / 2 + 1)
+    config = train.TrainConfig(val_graphs=1, seed=5)
+    split = batches.make_split([traj], config)
+    held = set(traj.graph_index[split[0][1]])
+    edges = [g.n_edges for i, g in enumerate(traj.graphs) if i not in held]
+    assert runs.mean_in_degree([traj], False, split) == pytest.approx(sum(edges) / len(edges) / 2)
+    m = runs.new_model([traj], aggregation="scaled", split=split)
+    assert m.spec.mean_degree == pytest.approx(sum(edges) / len(edges) / 2)

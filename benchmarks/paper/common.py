@@ -118,6 +118,9 @@ class RunSpec:
 
     test / test_points: evaluate the best-validation model on ``test`` at ``test_points``
     evenly spaced epochs (training resumes between them) -- the test-error curve of Fig. 5.
+    kind, aggregation: the model (mpnode.runs options; aggregation None: the recipe's);
+    recipe: "paper" (the paper's settings) or "auto"; extra: further `mpnode train` options
+    as (name, value) pairs, e.g. (("schedule", "cosine"), ("val_graphs", 1)).
     """
 
     name: str
@@ -133,6 +136,21 @@ class RunSpec:
     test_points: int = 0
     seed: int = 0
     lr: float = 1e-3
+    recipe: str = "paper"
+    kind: str = "mpnode"
+    aggregation: str = None
+    extra: tuple = ()
+
+    def options(self):
+        """The `mpnode train` options of this run (mpnode.runs), model options only from scratch."""
+        opts = {"epochs": self.epochs, "seed": self.seed, "lr": self.lr, "curriculum": tuple(self.curriculum),
+                "curriculum_epochs": self.curriculum_epochs, **dict(self.extra)}
+        if not self.init_from:
+            opts.update(kind=self.kind, message_dim=self.message_dim, hidden=self.hidden,
+                        zero_messages=self.zero_messages)
+            if self.aggregation:
+                opts["aggregation"] = self.aggregation
+        return opts
 
     @property
     def key(self):
@@ -159,34 +177,25 @@ def load_model(work, name):
 
 
 def train_run(spec, work):
-    """Train ``spec`` and write runs/NAME/{model.h5, model.h5.log.jsonl, result.json}; return the result."""
+    """Train ``spec`` with the library function behind `mpnode train` / `finetune` and write
+    runs/NAME/{model.h5, model.h5.log.jsonl, result.json}; return the result."""
+    from mpnode import runs
+    from mpnode.atomic import atomic_path
     from mpnode.evaluate import evaluate
-    from mpnode.model import Model
-    from mpnode.train import TrainConfig, fit, read_log, log_path
+    from mpnode.train import state_path
+    from mpnode.train_log import log_path, read_log
 
     out = run_dir(work, spec.name)
     out.mkdir(parents=True, exist_ok=True)
     model_file = out / "model.h5"
-    for p in (model_file, Path(log_path(model_file)), Path(str(model_file) + ".state"), out / "result.json"):
+    for p in (model_file, Path(log_path(model_file)), Path(state_path(model_file)), out / "result.json"):
         p.unlink(missing_ok=True)
-    datasets = [load_data(work, d) for d in spec.train]
+    paths = [make_data(work, d) for d in spec.train]
+    datasets = runs.read_all(paths)
     test = load_data(work, spec.test) if spec.test is not None else None
-    first = datasets[0]
-    if spec.init_from:
-        model = load_model(work, spec.init_from)
-        norm = "keep"
-    else:
-        model = Model.create(first.state_dim, first.control_dim, spec.message_dim, spec.hidden, first.dt,
-                             zero_messages=spec.zero_messages, seed=spec.seed)
-        norm = "fit"
-    config = TrainConfig(epochs=spec.epochs, seed=spec.seed, norm=norm, lr=spec.lr, curriculum=tuple(spec.curriculum),
-                         curriculum_epochs=spec.curriculum_epochs)
     stops = [spec.epochs]
     if spec.test_points:
         stops = sorted({int(round(spec.epochs * k / spec.test_points)) for k in range(1, spec.test_points + 1)})
-    curve = []
-    if test is not None:
-        curve.append([0, evaluate(model, test, check_stability=False).nmse])
     t0 = time.perf_counter()
     mark = {"next": 0.0}
 
@@ -196,10 +205,20 @@ def train_run(spec, work):
             print(f"    {spec.name}: epoch {rec['epoch']}/{spec.epochs}, val loss {rec['val_loss']:.4g}, "
                   f"{time.perf_counter() - t0:.0f} s", flush=True)
 
+    def segment(epochs, resume):
+        opts = {**spec.options(), "epochs": epochs}
+        if spec.init_from:
+            return runs.finetune(run_dir(work, spec.init_from) / "model.h5", paths, model_file, opts, resume=resume,
+                                 progress=progress, datasets=datasets)
+        return runs.train(paths, model_file, opts, recipe_name=spec.recipe, resume=resume, progress=progress,
+                          datasets=datasets)
+
+    curve = []
+    if test is not None:  # the test curve starts at the initial weights (epoch 0)
+        curve.append([0, evaluate(segment(0, False).model, test, check_stability=False).nmse])
     result = None
     for i, stop in enumerate(stops):
-        result = fit(model if i == 0 else None, datasets, dataclasses.replace(config, epochs=stop), model_file,
-                     resume=i > 0, progress=progress)
+        result = segment(stop, resume=test is not None or i > 0)
         if test is not None:
             curve.append([result.epoch, evaluate(result.model, test, check_stability=False).nmse])
         if result.status != "completed":
@@ -215,9 +234,8 @@ def train_run(spec, work):
            "seconds": time.perf_counter() - t0,
            "history": [{k: r.get(k) for k in ("epoch", "train_loss", "val_loss", "window", "lr")} for r in history],
            "test_curve": curve}
-    tmp = out / "result.json.tmp"
-    tmp.write_text(json.dumps(res, default=_json_default))
-    os.replace(tmp, out / "result.json")
+    with atomic_path(out / "result.json") as tmp:
+        Path(tmp).write_text(json.dumps(res, default=_json_default))
     return res
 
 
@@ -331,10 +349,11 @@ class Context:
         """Save a matplotlib figure as figures/NAME.png; returns the markdown link."""
         import matplotlib.pyplot as plt
 
+        from mpnode.atomic import atomic_path
+
         self.figures.mkdir(parents=True, exist_ok=True)
-        tmp = self.figures / f".{name}.tmp.png"
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-        os.replace(tmp, self.figures / f"{name}.png")
+        with atomic_path(self.figures / f"{name}.png") as tmp:
+            fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
         plt.close(fig)
         return f"![{name}](figures/{name}.png)"
 
@@ -359,7 +378,7 @@ def evaluate_nmse(model, traj):
 
 
 def zscore_mse(model, traj, pred):
-    """Mean squared error in the model's own z-scored units (the seed code's normalisation), steps 1..T."""
+    """Mean squared error in the model's own z-scored units (the units of the training loss), steps 1..T."""
     x = np.asarray(traj.x, dtype=np.float64)
     e = (np.asarray(pred, dtype=np.float64)[:, 1:] - x[:, 1:]) / model.x_std
     return float(np.mean(e * e))
@@ -463,9 +482,10 @@ def main(experiments, argv=None, description="MP-NODE paper suite"):
 
 
 def _write(path, text):
-    tmp = path.with_name("." + path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    from mpnode.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(text)
 
 
 def write_results(out, mode, argv, seconds, jobs):

@@ -55,7 +55,7 @@ ev q6_scratch_t.h5   q6_test.h5 eval_q6_scratch_t.q6
 ev "q3_m$BEST.h5"  q3_test.h5 eval_q3_best.q3 --predictions pred_q3_best.h5
 
 # the figure (plotting extra: pip install -e '.[plot]'), and the results table
-python -c "from mpnode.plot import plot_swarm; plot_swarm('q6_test.h5', 'pred_q6_finetuned.h5', trajectory=0, out='$HERE/swarm.png', title='quad3 model (m=$BEST) fine-tuned for 4000 epochs on a $N6_TRAIN-trajectory quad6 set (70 % of it trained on); quad6 test trajectory 0')"
-python -c "from mpnode.plot import plot_swarm; plot_swarm('q3_test.h5', 'pred_q3_best.h5', trajectory=0, out='$OUT/swarm_q3.png', title='quad3 model (m=$BEST), quad3 test trajectory 0')"
+python "$HERE/swarm.py" q6_test.h5 pred_q6_finetuned.h5 --trajectory 0 -o "$HERE/swarm.png" --title "quad3 model (m=$BEST) fine-tuned for 4000 epochs on a $N6_TRAIN-trajectory quad6 set (70 % of it trained on); quad6 test trajectory 0"
+python "$HERE/swarm.py" q3_test.h5 pred_q3_best.h5 --trajectory 0 -o "$OUT/swarm_q3.png" --title "quad3 model (m=$BEST), quad3 test trajectory 0"
 python "$HERE/table.py" "$OUT" | tee table.md
 python "$HERE/analyze.py" "$OUT" | tee analyze.md

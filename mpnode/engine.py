@@ -1,28 +1,47 @@
-"""RK4 rollouts of an MP-NODE over a flat (block-diagonal) graph, and their exact gradient.
+"""The engine: RK4 rollouts of a field over a flat (block-diagonal) graph, and their exact VJP.
 
-The gradient is the *discrete adjoint*: the exact derivative of the RK4 rollout as
-computed, obtained by walking the steps backwards.  Cost: memory for one state per
-RK4 step (T*substeps+1 arrays of (M, dz)); time about 4x a rollout (forward,
-recomputed stages, and a VJP that costs about twice a forward).  Stage values are
-recomputed rather than stored, so memory does not grow with the hidden width.
+`forward` integrates; `forward_with_vjp` also returns the vector-Jacobian product of
+the rollout, the *discrete adjoint*: for any cotangent gx of the output states it gives
+the exact gradient, with respect to the parameters and the initial state, of
+<gx, rollout> as computed (not of the ODE it approximates).  Losses, windows, multiple
+shooting are the caller's business (`mpnode.losses`).  Cost: memory for one state per RK4
+step (T*substeps+1 arrays of (M, dz)); time about 4x a rollout (forward, recomputed
+stages, and a VJP that costs about twice a forward).  Stage values are recomputed rather
+than stored, so memory does not grow with the hidden width.
 
 Arrays here are time-major and flat over nodes: x (T+1, M, dx), u (T, M, du).
 `mpnode.model` turns (B, T+1, N, dx) batches into this layout.
 """
 import contextlib
+import functools
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from .graph import Graph
 
-LOSSES = {"huber": 0, "mse": 1}
+#: the model kinds the engine integrates (docs/model-format.md)
+KINDS = ("mpnode", "l2s", "node")
+#: how a node combines what its neighbours send (model-format.md, "Aggregation")
+AGGREGATIONS = ("mean", "sum", "scaled")
+
+
+def default_aggregation(kind):
+    """The aggregation a kind has when nothing says otherwise: the sum for l2s (as the Julia
+    code's SegmentedSum), else the paper's mean."""
+    return "sum" if kind == "l2s" else "mean"
 
 
 @dataclass(frozen=True)
 class FieldSpec:
-    """What the kernels need to know about a model besides its weights."""
+    """What the kernels need to know about a model besides its weights.
+
+    kind : "mpnode" (state [x, m], messages of size message_dim), "l2s" (state x,
+        message_dim 0) or "node" (a plain neural ODE of a whole system of ``n_nodes``
+        nodes; message_dim 0, the graph is ignored)
+    aggregation : "mean", "sum" or "scaled" (the sum divided by ``mean_degree``)
+    """
 
     state_dim: int
     control_dim: int
@@ -32,6 +51,35 @@ class FieldSpec:
     substeps: int = 1
     zero_messages: bool = False
     self_messages: bool = False
+    kind: str = "mpnode"
+    aggregation: str = "mean"
+    mean_degree: float = None
+    n_nodes: int = None
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"kind must be one of {KINDS}, not {self.kind!r}")
+        if self.aggregation not in AGGREGATIONS:
+            raise ValueError(f"aggregation must be one of {AGGREGATIONS}, not {self.aggregation!r}")
+        if (self.aggregation == "scaled") != (self.mean_degree is not None):
+            raise ValueError("mean_degree goes with aggregation 'scaled' (and only with it)")
+        if self.mean_degree is not None and not self.mean_degree > 0:
+            raise ValueError(f"mean_degree must be > 0, not {self.mean_degree}")
+        if self.kind != "mpnode" and (self.message_dim or self.zero_messages):
+            raise ValueError(f"a {self.kind} model has no message state (message_dim 0, no zero_messages)")
+        if (self.kind == "node") != (self.n_nodes is not None):
+            raise ValueError("n_nodes goes with kind 'node' (and only with it)")
+
+    @property
+    def dims(self):
+        """The kernels' (kind, dx, du, dm, H, self_msg, zero_msg) tuple (kinds mpnode and l2s)."""
+        return (KINDS.index(self.kind), self.state_dim, self.control_dim, self.message_dim, self.hidden,
+                int(self.self_messages), int(self.zero_messages))
+
+    @property
+    def state_width(self):
+        """Columns of the integrated state z: dx + dm."""
+        return self.state_dim + self.message_dim
 
 
 # ---------------------------------------------------------------------------
@@ -69,15 +117,16 @@ class Plan:
         graph whose 0/1 adjacency (self-loop included for self_messages) starts at
         dense_A[dense_off[b]] (row-major); dense_n[b] = 0 means CSR
     dense_A, dense_AT : flat arrays of those matrices and their transposes
-    inv_deg : ndarray (M,) -- 1 / (row length [+1 with self_messages]), 0 for empty rows
+    weight : ndarray (M,) -- each node's factor on the sum of what its row sends (aggregation)
     transposed : Graph -- the CSR transpose (computed on first use, for the adjoint)
     """
 
-    def __init__(self, graph, n_threads, self_messages, dtype, driver="auto", blocks_per_thread=2, tile=128):
+    def __init__(self, graph, n_threads, self_messages, dtype, aggregation, mean_degree, driver="auto",
+                 blocks_per_thread=2, tile=128):
         self.blocks = None
         self._csr = Graph(graph.indptr, graph.indices)  # not the graph: the cache holds it weakly
         self._transposed = None
-        self.inv_deg = inverse_degree(graph, self_messages, dtype)
+        self.weight = aggregation_weights(graph, self_messages, aggregation, mean_degree, dtype)
         m = graph.n_nodes
         parts = graph.parts or (graph,)
         sizes = np.array([p.n_nodes for p in parts], dtype=np.int64)
@@ -140,26 +189,31 @@ _plans = weakref.WeakKeyDictionary()
 DRIVERS = ("auto", "blocks", "stagewise")
 
 
-def plan_for(graph, self_messages, dtype, driver="auto"):
-    """The Plan for ``graph`` (cached per graph object: batches reuse their graphs).
+def plan_for(graph, spec, dtype, driver="auto"):
+    """The Plan for ``graph`` under ``spec``'s aggregation (cached per graph object: batches
+    reuse their graphs).
 
     driver : "auto" (block drivers unless one graph is too big to split), or force
     "blocks" / "stagewise" (the results agree to rounding; tests and benchmarks use this).
     """
     if driver not in DRIVERS:
         raise ValueError(f"driver must be one of {DRIVERS}, not {driver!r}")
-    key = (_n_threads(), bool(self_messages), np.dtype(dtype).str, driver)
+    key = (_n_threads(), bool(spec.self_messages), np.dtype(dtype).str, driver, spec.aggregation, spec.mean_degree)
     per_graph = _plans.setdefault(graph, {})
     if key not in per_graph:
-        per_graph[key] = Plan(graph, key[0], self_messages, dtype, driver)
+        per_graph[key] = Plan(graph, key[0], spec.self_messages, dtype, spec.aggregation, spec.mean_degree, driver)
     return per_graph[key]
 
 
-def inverse_degree(graph, self_messages, dtype):
-    """1 / (row length [+1 when a node hears itself]); 0 for a node that hears nobody."""
+def aggregation_weights(graph, self_messages, aggregation, mean_degree, dtype):
+    """Each node's factor on the sum over its row [and itself]: mean 1 / that count, sum 1,
+    scaled 1 / mean_degree; 0 for a node that hears nobody (its aggregate is 0)."""
     d = graph.degrees() + (1 if self_messages else 0)
     out = np.zeros(graph.n_nodes, dtype=dtype)
-    np.divide(1.0, d, out=out, where=d > 0, casting="unsafe")
+    if aggregation == "mean":
+        np.divide(1.0, d, out=out, where=d > 0, casting="unsafe")
+    else:
+        out[d > 0] = 1.0 if aggregation == "sum" else 1.0 / mean_degree
     return out
 
 
@@ -224,16 +278,31 @@ def _prepare(spec, theta, graph, u, n_steps, n_nodes, driver):
     if graph.n_nodes != n_nodes:
         raise ValueError(f"graph has {graph.n_nodes} nodes but the states have {n_nodes}")
     h = dtype.type(spec.dt / spec.substeps)
-    return u, plan_for(graph, spec.self_messages, dtype, driver), h
+    return u, plan_for(graph, spec, dtype, driver), h
 
 
-def rollout(spec, theta, x0, graph, u=None, n_steps=1, driver="auto"):
-    """Integrate from x0 (messages start at 0).
+def _whole_systems(spec, x0, u, graph):
+    """A plain NODE as the kernels run it: an MP-NODE field without messages on one "node"
+    per system, whose state is [x_1, ..., x_N] and control [u_1, ..., u_N] (node-major, so
+    the flat rows of a system reshape to it for free), on a graph with no edges."""
+    n = spec.n_nodes
+    m, dx = x0.shape
+    if graph.n_nodes != m:
+        raise ValueError(f"graph has {graph.n_nodes} nodes but the states have {m}")
+    if m % n:
+        raise ValueError(f"{m} nodes are not whole systems of {n} nodes (a node model's n_nodes)")
+    inner = replace(spec, kind="mpnode", state_dim=n * dx, control_dim=n * spec.control_dim, n_nodes=None)
+    u = None if u is None else np.asarray(u).reshape(u.shape[0], m // n, n * spec.control_dim)
+    return inner, np.asarray(x0).reshape(m // n, n * dx), u, _edgeless(m // n)
 
-    x0 : ndarray, shape (M, dx); u : ndarray, shape (n_steps, M, du) or None;
-    returns x : ndarray, shape (n_steps+1, M, dx), in theta's dtype.
-    driver : see plan_for.
-    """
+
+@functools.lru_cache(maxsize=16)
+def _edgeless(n):
+    return Graph(np.zeros(n + 1, dtype=np.int64), np.zeros(0, dtype=np.int64))
+
+
+def _run(spec, theta, x0, graph, u, n_steps, driver, keep_states):
+    """The forward rollout: (x (n_steps+1, M, dx), states or None, u, plan, h)."""
     from . import kernels
 
     theta = np.ascontiguousarray(theta)
@@ -241,46 +310,64 @@ def rollout(spec, theta, x0, graph, u=None, n_steps=1, driver="auto"):
     m = x0.shape[0]
     u, plan, h = _prepare(spec, theta, graph, u, n_steps, m, driver)
     out = np.empty((n_steps + 1, m, spec.state_dim), dtype=theta.dtype)
-    args = (theta, spec.message_dim, spec.hidden, x0, u, graph.indptr, graph.indices, plan.inv_deg)
-    flags = (spec.substeps, h, spec.self_messages, spec.zero_messages, out)
+    n_states = n_steps * spec.substeps + 1 if keep_states else 0
+    states = np.empty((n_states, m if keep_states else 0, spec.state_width), dtype=theta.dtype)
+    g = (graph.indptr, graph.indices, plan.weight)
     with single_threaded_blas():
         if plan.blocks is None:
-            kernels.rollout_stagewise(*args, *flags)
+            kernels.rollout_stagewise(theta, spec.dims, x0, u, g, spec.substeps, h, out, states)
         else:
-            kernels.rollout_blocks(*args, plan.blocks, plan.dense_n, plan.dense_off, plan.dense_A, *flags)
-    return out
+            kernels.rollout_blocks(theta, spec.dims, x0, u, g, plan.blocks, plan.dense_n, plan.dense_off,
+                                   plan.dense_A, spec.substeps, h, out, states)
+    return out, states, u, plan, h
 
 
-def loss_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes_total=None, driver="auto"):
-    """Loss of the rollout from x[0] against x[1..T] and its exact gradient.
+def forward(spec, theta, x0, graph, u=None, n_steps=1, driver="auto"):
+    """Integrate from x0 (messages start at 0).
 
-    x : ndarray, shape (T+1, M, dx) -- the true states (x[0] is the initial state).
-    The loss is Huber (delta 1) or squared error, summed over state dimensions and
-    steps 1..T and divided by the number of nodes (``n_nodes_total``, default M).
-    Returns (loss, gtheta like theta, gx0 of shape (M, dx)).  driver : see plan_for.
+    x0 : ndarray, shape (M, dx); u : ndarray, shape (n_steps, M, du) or None;
+    returns x : ndarray, shape (n_steps+1, M, dx), in theta's dtype.
+    driver : see plan_for.  For kind "node" the graph only gives M (whole systems).
+    """
+    return forward_with_vjp(spec, theta, x0, graph, u, n_steps, driver, keep_states=False)[0]
+
+
+def forward_with_vjp(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", keep_states=True):
+    """`forward`, and the vector-Jacobian product of the rollout (the discrete adjoint).
+
+    Returns (x, vjp): x as `forward`; ``vjp(gx)`` takes the cotangent of every output
+    state, gx : ndarray, shape (n_steps+1, M, dx), and returns (gtheta like theta,
+    gx0 of shape (M, dx)): the gradient of sum(gx * x) with respect to theta and x0.
+    vjp may be called several times; it keeps one state per RK4 step alive
+    (``keep_states=False``: no vjp, the rollout alone).
     """
     from . import kernels
 
+    shape = (n_steps + 1,) + np.shape(x0)
+    if spec.kind == "node":
+        spec, x0, u, graph = _whole_systems(spec, x0, u, graph)
+    x, states, u, plan, h = _run(spec, theta, x0, graph, u, n_steps, driver, keep_states)
+    x = x.reshape(shape)
+    if not keep_states:
+        return x, None
     theta = np.ascontiguousarray(theta)
-    x = np.ascontiguousarray(x, dtype=theta.dtype)
-    n_steps, m = x.shape[0] - 1, x.shape[1]
-    u, plan, h = _prepare(spec, theta, graph, u, n_steps, m, driver)
-    kind = LOSSES[loss]
-    scale = 1.0 / (n_nodes_total or m)
-    dz = spec.state_dim + spec.message_dim
-    states = np.empty((n_steps * spec.substeps + 1, m, dz), dtype=theta.dtype)
-    gx0 = np.empty((m, spec.state_dim), dtype=theta.dtype)
-    tgraph = plan.transposed
-    args = (theta, spec.message_dim, spec.hidden, x, u, graph.indptr, graph.indices, plan.inv_deg,
-            tgraph.indptr, tgraph.indices)
-    n_parts = len(plan.blocks) - 1 if plan.blocks is not None else -(-m // kernels.STAGE_TILE)
-    gthetas = np.empty((n_parts, theta.size), dtype=theta.dtype)
-    losses = np.zeros(n_parts, dtype=np.float64)
-    tail = (spec.substeps, h, spec.self_messages, spec.zero_messages, kind, scale, states, gthetas, losses, gx0)
-    with single_threaded_blas():
-        if plan.blocks is None:
-            kernels.loss_grad_stagewise(*args, *tail)
-        else:
-            kernels.loss_grad_blocks(*args, plan.blocks, plan.dense_n, plan.dense_off, plan.dense_A,
-                                     plan.dense_AT, *tail)
-    return float(losses.sum()), gthetas.sum(axis=0, dtype=theta.dtype), gx0
+    m = states.shape[1]
+
+    def vjp(gx):
+        if np.shape(gx) != shape:
+            raise ValueError(f"the cotangent has shape {np.shape(gx)}, the rollout {shape}")
+        gx = np.ascontiguousarray(gx, dtype=theta.dtype).reshape(n_steps + 1, m, spec.state_dim)
+        tgraph = plan.transposed
+        n_parts = len(plan.blocks) - 1 if plan.blocks is not None else -(-m // kernels.STAGE_TILE)
+        gthetas = np.empty((n_parts, theta.size), dtype=theta.dtype)
+        gx0 = np.empty((m, spec.state_dim), dtype=theta.dtype)
+        g, gt = (graph.indptr, graph.indices, plan.weight), (tgraph.indptr, tgraph.indices)
+        with single_threaded_blas():
+            if plan.blocks is None:
+                kernels.vjp_stagewise(theta, spec.dims, u, g, gt, spec.substeps, h, states, gx, gthetas, gx0)
+            else:
+                kernels.vjp_blocks(theta, spec.dims, u, g, gt, plan.blocks, plan.dense_n, plan.dense_off,
+                                   plan.dense_A, plan.dense_AT, spec.substeps, h, states, gx, gthetas, gx0)
+        return gthetas.sum(axis=0, dtype=theta.dtype), gx0.reshape(shape[1:])
+
+    return x, vjp

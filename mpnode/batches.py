@@ -1,0 +1,223 @@
+"""Training data made ready for the engine: checks, the split, normalisation, noise, windows, batches.
+
+Everything is decided once per run and depends only on the data and the seed, so that a
+resumed run sees exactly the data of an uninterrupted one.  Batches: every batch comes
+from one file (one node count N per file, so one block-diagonal graph per batch); each
+epoch shuffles every file's training trajectories, cuts them into batches and shuffles
+the order of all batches together, so several files are interleaved in proportion to
+their size.  The shuffle of epoch e depends only on (seed, e).
+
+Horizon windows (the curriculum of `mpnode.train`): every training trajectory of T steps
+is cut into consecutive windows of w steps, each starting from its own (noisy) true
+state: starts 0, w, 2w, ... and, when w does not divide T, one last window ending at T
+(overlapping the one before), so every transition is trained on and the epoch is
+deterministic; random windows would add sampling noise for no gain in coverage.
+"""
+import json
+import math
+import zlib
+
+import numpy as np
+
+from .errors import InputError
+from .graph import block_diagonal
+
+
+def check_data(model, datasets, sources, allow_dt_mismatch=False):
+    """Raise InputError unless every file fits the model (dx, du, N for a node model) and its dt.
+
+    datasets : list of Trajectories; sources : their file names (for the messages).
+    """
+    s = model.spec
+    for traj, src in zip(datasets, sources):
+        if traj.state_dim != s.state_dim:
+            raise InputError(src, "x", f"has {traj.state_dim} state dimensions per node but the model has "
+                             f"{s.state_dim}", f"a file of the system the model was trained on (dx = {s.state_dim})")
+        if traj.control_dim != s.control_dim:
+            raise InputError(src, "u", f"has {traj.control_dim} control dimensions per node but the model has "
+                             f"{s.control_dim}", f"du = {s.control_dim}")
+        model.check_nodes(traj.n_nodes, src, "x")
+        if not allow_dt_mismatch and not math.isclose(traj.dt, s.dt, rel_tol=1e-9, abs_tol=0.0):
+            raise InputError(src, "dt", f"is {traj.dt:g} but the model was trained with dt = {s.dt:g}",
+                             f"data saved every {s.dt:g} (or pass the flag that allows another dt)")
+
+
+def check_same_kind(datasets, sources):
+    """Several training files must agree on dx, du and dt (graphs and N may differ)."""
+    first, src0 = datasets[0], sources[0]
+    for traj, src in zip(datasets[1:], sources[1:]):
+        for what, a, b in (("x", traj.state_dim, first.state_dim), ("u", traj.control_dim, first.control_dim)):
+            if a != b:
+                raise InputError(src, what, f"has {a} dimensions per node but {src0} has {b}",
+                                 "files of one system (same dx and du)")
+        if not math.isclose(traj.dt, first.dt, rel_tol=1e-9, abs_tol=0.0):
+            raise InputError(src, "dt", f"is {traj.dt:g} but {src0} has dt = {first.dt:g}", "the same dt in every file")
+
+
+def split_indices(n, val_split, seed, file_index=0):
+    """A random (train, val) split of range(n), the same for the same (n, val_split, seed, file).
+
+    round(val_split * n) trajectories go to validation, but at least one trajectory stays
+    in training.  Returns two sorted int64 arrays.
+    """
+    rng = np.random.default_rng([seed, 2, file_index])
+    perm = rng.permutation(n)
+    n_val = min(int(round(val_split * n)), n - 1)
+    return np.sort(perm[n_val:]).astype(np.int64), np.sort(perm[:n_val]).astype(np.int64)
+
+
+def split_by_graphs(graph_index, n_graphs, val_graphs, seed, file_index=0):
+    """A (train, val) split that holds out ``val_graphs`` whole graphs (chosen from the seed):
+    the validation trajectories are those that ran on them, so the best model is the one
+    that generalises to graphs it has not seen.  Returns (train idx, val idx, held graphs)."""
+    rng = np.random.default_rng([seed, 4, file_index])
+    held = np.sort(rng.permutation(n_graphs)[:val_graphs])
+    on_held = np.isin(np.asarray(graph_index), held)
+    return (np.flatnonzero(~on_held).astype(np.int64), np.flatnonzero(on_held).astype(np.int64),
+            [int(g) for g in held])
+
+
+def make_split(datasets, config):
+    """Every file's (train idx, val idx): whole graphs held out (config.val_graphs) in files
+    with more graphs than that, a random fraction (config.val_split) otherwise."""
+    out = []
+    for f, traj in enumerate(datasets):
+        if config.val_graphs and len(traj.graphs) > config.val_graphs:
+            out.append(split_by_graphs(traj.graph_index, len(traj.graphs), config.val_graphs, config.seed, f)[:2])
+        else:
+            out.append(split_indices(traj.n_trajectories, config.val_split, config.seed, f))
+    return out
+
+
+def fit_normalization(arrays):
+    """Per-dimension mean and std over all entries of ``arrays`` (each (..., d)).
+
+    A dimension with zero spread gets std 1.  Returns (mean, std), float64 shape (d,).
+    """
+    d = arrays[0].shape[-1]
+    count = sum(a.size // d for a in arrays)
+    total = sum(a.reshape(-1, d).sum(axis=0, dtype=np.float64) for a in arrays)
+    mean = total / count
+    sq = sum(((a.reshape(-1, d) - mean) ** 2).sum(axis=0) for a in arrays)
+    std = np.sqrt(sq / count)
+    std[~(std > 1e-12 * np.maximum(1.0, np.abs(mean)))] = 1.0
+    return mean, std
+
+
+def fingerprint(datasets):
+    """A JSON string identifying the training data (shapes, dt, checksums), for resume."""
+    out = []
+    for traj in datasets:
+        x = np.ascontiguousarray(traj.x)
+        out.append({"shape": list(x.shape), "du": traj.control_dim, "dt": float(traj.dt),
+                    "x_crc": zlib.crc32(x.view(np.uint8)),
+                    "graphs": [zlib.crc32(np.ascontiguousarray(g.indices).view(np.uint8)) for g in traj.graphs]})
+    return json.dumps(out, sort_keys=True)
+
+
+class Part:
+    """Trajectories of one file on one side of the split, normalised and time-major for the engine.
+
+    x : ndarray, shape (T+1, B, N, dx), model dtype;  u : (T, B, N, du) or None
+    gi : ndarray, shape (B,), each trajectory's graph;  graphs : the file's graphs
+    index : ndarray, shape (B,), each trajectory's number in its file
+    """
+
+    def __init__(self, x, u, gi, graphs, index):
+        self.x, self.u, self.gi, self.graphs, self.index = x, u, gi, graphs, index
+        self.n = x.shape[1]
+        self.n_nodes = x.shape[2]
+        self.single_graph = len(graphs) == 1 or len(np.unique(gi)) <= 1
+        self._graph_cache = {}
+
+    @classmethod
+    def of_file(cls, traj, idx, model, noise_std=0.0, rng=None):
+        """Trajectories ``idx`` of ``traj``, normalised with ``model``'s constants, plus Gaussian noise."""
+        x = model.normalize_x(np.asarray(traj.x)[idx])
+        if noise_std > 0 and len(idx):
+            x = (x + rng.standard_normal(x.shape) * noise_std).astype(model.dtype)
+        u = None
+        if traj.u is not None:
+            u = np.ascontiguousarray(model.normalize_u(np.asarray(traj.u)[idx]).transpose(1, 0, 2, 3))
+        return cls(np.ascontiguousarray(x.transpose(1, 0, 2, 3)), u, np.asarray(traj.graph_index)[idx],
+                   traj.graphs, idx)
+
+    def windows(self, window):
+        """The windows of ``window`` steps of every trajectory (module docstring) as a new Part:
+        window j of trajectory b becomes trajectory b * n_windows + j."""
+        t1, b, n, dx = self.x.shape
+        starts = window_starts(t1 - 1, window)
+        w, nw = min(window, t1 - 1), len(starts)
+        x = np.ascontiguousarray(np.stack([self.x[a:a + w + 1] for a in starts], axis=2)).reshape(w + 1, b * nw, n, dx)
+        u = None
+        if self.u is not None:
+            u = np.ascontiguousarray(np.stack([self.u[a:a + w] for a in starts], axis=2)).reshape(w, b * nw, n, -1)
+        return Part(x, u, np.repeat(self.gi, nw), self.graphs, np.repeat(self.index, nw))
+
+    def batch(self, sel):
+        """(x (T+1, b*N, dx), u (T, b*N, du) or None, graph) for local trajectory numbers ``sel``.
+
+        Trajectories are grouped by graph inside the batch (the loss is a sum, so order is
+        free): runs of copies of one small graph let the kernels aggregate densely.
+        """
+        if not self.single_graph:
+            sel = sel[np.argsort(self.gi[sel], kind="stable")]
+        b = len(sel)
+        t1, _, n, dx = self.x.shape
+        x = np.take(self.x, sel, axis=1).reshape(t1, b * n, dx)
+        u = None if self.u is None else np.take(self.u, sel, axis=1).reshape(t1 - 1, b * n, -1)
+        return x, u, self.graph(sel)
+
+    def graph(self, sel):
+        b = len(sel)
+        if self.single_graph:
+            g = self._graph_cache.get(b)
+            if g is None:
+                one = self.graphs[int(self.gi[0])] if len(self.gi) else self.graphs[0]
+                g = self._graph_cache[b] = block_diagonal([one] * b)
+            return g
+        return block_diagonal([self.graphs[int(i)] for i in self.gi[sel]])
+
+
+def prepare(model, datasets, config):
+    """Split, normalise (fitting the constants on the training split if config.norm == "fit")
+    and add noise; returns (train parts, val parts, split) with split[f] = (train idx, val idx).
+
+    Modifies ``model``'s normalisation constants when fitting.
+    """
+    split = make_split(datasets, config)
+    if config.norm == "fit":
+        model.x_mean, model.x_std = fit_normalization([np.asarray(t.x)[tr] for t, (tr, _) in zip(datasets, split)])
+        if model.spec.control_dim:
+            model.u_mean, model.u_std = fit_normalization([np.asarray(t.u)[tr] for t, (tr, _) in zip(datasets, split)])
+    train, val = [], []
+    for f, (traj, (tr, va)) in enumerate(zip(datasets, split)):
+        rng = np.random.default_rng([config.seed, 3, f])
+        train.append(Part.of_file(traj, tr, model, config.noise, rng))
+        val.append(Part.of_file(traj, va, model))
+    return train, [v for v in val if v.n], split
+
+
+def window_starts(horizon, window):
+    """Start steps of the windows of ``window`` steps covering 0..horizon (module docstring).
+
+    Consecutive windows 0, w, 2w, ...; when w does not divide T a last window ends at T.
+    ``window >= horizon`` gives the whole trajectory: [0].
+    """
+    if window >= horizon:
+        return np.zeros(1, dtype=np.int64)
+    starts = list(range(0, horizon - window + 1, window))
+    if starts[-1] + window < horizon:
+        starts.append(horizon - window)
+    return np.asarray(starts, dtype=np.int64)
+
+
+def epoch_batches(parts, batch_size, seed, epoch):
+    """The batches of one epoch: list of (part number, local indices), shuffled."""
+    rng = np.random.default_rng([seed, 1, epoch])
+    out = []
+    for p, part in enumerate(parts):
+        perm = rng.permutation(part.n)
+        out += [(p, perm[i:i + batch_size]) for i in range(0, part.n, batch_size)]
+    order = rng.permutation(len(out))
+    return [out[i] for i in order]

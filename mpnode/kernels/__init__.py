@@ -1,0 +1,37 @@
+"""The compiled engine: fields on tiles of nodes (MP-NODE, L2S), RK4 drivers and their adjoint.
+
+Modules: ``layers`` (dense layers, tanh, neighbour sums), ``mpnode_field`` and
+``l2s_field`` (one field each: send, update and their VJPs), ``rk4`` (the drivers).
+`mpnode.engine` is the Python entry point; nothing else calls these directly.
+
+Numba caches each compiled function under its own source file's hash, but a compiled
+driver contains the code of everything it calls from the sibling modules: after an
+edit to ``layers.py`` alone, numba would still serve the drivers compiled with the old
+layers.  So the cache folder of this package is keyed by a digest of all its sources.
+"""
+import hashlib
+import os
+from pathlib import Path
+
+import numba
+
+
+def _cache_dir():
+    """<NUMBA_CACHE_DIR or this package's __pycache__>/mpnode-kernels-<digest of the sources>."""
+    here = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(here.glob("*.py")):
+        digest.update(path.name.encode() + path.read_bytes())
+    base = numba.config.CACHE_DIR or str(here / "__pycache__")
+    return os.path.join(base, "mpnode-kernels-" + digest.hexdigest()[:16])
+
+
+_user_cache_dir = numba.config.CACHE_DIR
+numba.config.CACHE_DIR = _cache_dir()  # read when each function below is decorated
+try:
+    from .layers import (dense_backward, dense_forward, dense_sum, dense_tanh_backward,  # noqa: F401
+                         dense_tanh_forward)
+    from .rk4 import (L2S, MPNODE, STAGE_TILE, TILE, rollout_blocks, rollout_stagewise,  # noqa: F401
+                      vjp_blocks, vjp_stagewise)
+finally:
+    numba.config.CACHE_DIR = _user_cache_dir

@@ -1,0 +1,95 @@
+"""The MP-NODE field on a tile of nodes: k = MLP([x, u, m']), and its VJP.
+
+A node's state is z = [x, m] (dz = dx + dm).  What a node sends its neighbours is its
+message m itself (the columns dx: of z), so nothing is computed before the neighbour
+sum; m' = weight * (sum over the row).  Parameters, flat in this order (row-major):
+W1 (din, H), b1 (H), W2 (H, H), b2 (H), W3 (H, dout), b3 (dout) with din = dx + du + dm
+and dout = dx + dm.  ``dims`` = (kind, dx, du, dm, H, self_msg, zero_msg).
+"""
+from numba import njit
+
+from .layers import JIT, aggregate_tile, dense_backward, dense_forward, dense_tanh_backward, dense_tanh_forward
+
+
+@njit(**JIT)
+def unpack(theta, din, H, dout):
+    """Views (W1, b1, W2, b2, W3, b3) into the flat parameter vector ``theta``."""
+    o = 0
+    W1 = theta[o:o + din * H].reshape(din, H)
+    o += din * H
+    b1 = theta[o:o + H]
+    o += H
+    W2 = theta[o:o + H * H].reshape(H, H)
+    o += H * H
+    b2 = theta[o:o + H]
+    o += H
+    W3 = theta[o:o + H * dout].reshape(H, dout)
+    o += H * dout
+    b3 = theta[o:o + dout]
+    return W1, b1, W2, b2, W3, b3
+
+
+@njit(**JIT)
+def mlp_forward(theta, V, H1, H2, dout):
+    """K = W3^T tanh(W2^T tanh(W1^T v + b1) + b2) + b3 per row v of V; keeps H1, H2."""
+    W1, b1, W2, b2, W3, b3 = unpack(theta, V.shape[1], H1.shape[1], dout)
+    dense_tanh_forward(V, W1, b1, H1)
+    dense_tanh_forward(H1, W2, b2, H2)
+    return dense_forward(H2, W3, b3)
+
+
+@njit(**JIT)
+def mlp_backward(theta, V, H1, H2, GK, gtheta):
+    """VJP of mlp_forward: returns GV (n, din); adds the parameter cotangents into gtheta."""
+    din, Hd, dout = V.shape[1], H1.shape[1], GK.shape[1]
+    W1, b1, W2, b2, W3, b3 = unpack(theta, din, Hd, dout)
+    gW1, gb1, gW2, gb2, gW3, gb3 = unpack(gtheta, din, Hd, dout)
+    GH2 = dense_backward(H2, W3, GK, gW3, gb3)
+    GH1 = dense_tanh_backward(H1, W2, H2, GH2, gW2, gb2)
+    return dense_tanh_backward(V, W1, H1, GH1, gW1, gb1)
+
+
+@njit(**JIT)
+def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2):
+    """k = F(zin) for nodes i0..i1: returns K (n, dz); V, H1, H2 (this tile's rows) keep the
+    MLP's inputs and activations for the VJP.  ``sums``: dense-path row sums or empty."""
+    _, dx, du, dm, _, self_msg, zero_msg = dims
+    indptr, indices, weight = graph
+    c = dx + du
+    for r in range(i1 - i0):
+        zi = i0 + r - zoff
+        for d in range(dx):
+            V[r, d] = zin[zi, d]
+        for d in range(du):
+            V[r, dx + d] = u[i0 + r, d]
+    if zero_msg:
+        V[:, c:] = 0
+    else:
+        aggregate_tile(zin, dx, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, V, c)
+    K = mlp_forward(theta, V, H1, H2, dx + dm)
+    if zero_msg:
+        K[:, dx:] = 0
+    return K
+
+
+@njit(**JIT)
+def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gin, gagg):
+    """VJP of update_tile for the cotangent GK of k (overwritten).
+
+    Writes the x part of the input's cotangent into gin[:, :dx] and each node's weighted
+    aggregate cotangent into gagg (rows ``i - zoff``), which the transpose of the neighbour
+    sum turns into the senders' message cotangents; adds into gtheta.
+    """
+    _, dx, du, dm, _, _, zero_msg = dims
+    if zero_msg:
+        GK[:, dx:] = 0
+    GV = mlp_backward(theta, V, H1, H2, GK, gtheta)
+    c = dx + du
+    for r in range(i1 - i0):
+        i = i0 + r
+        zi = i - zoff
+        for d in range(dx):
+            gin[zi, d] = GV[r, d]
+        w = weight.dtype.type(0) if zero_msg else weight[i]
+        for d in range(dm):
+            gagg[zi, d] = GV[r, c + d] * w

@@ -1,0 +1,427 @@
+"""Classic RK4 rollouts of a field on a flat graph, and their reverse pass (discrete adjoint).
+
+Layout.  The B graphs of a batch are one block-diagonal graph of M nodes.  A node's
+integrated state is z (dz columns: [x, m] for the MP-NODE, x for L2S), kept in arrays
+of shape (rows, dz); rows hold either all M nodes (``zoff = 0``) or one *block* of
+nodes ``lo..hi`` (``zoff = lo``): node ``i`` lives in row ``i - zoff``.
+
+A stage evaluates the field in three phases: *send* (what each node sends; only L2S
+computes anything), the neighbour *sum* (a dense GEMM for blocks of copies of one small
+graph, else the CSR rows), and *update* (the per-node network), whose output k is
+folded into the RK4 step at once.  The reverse pass walks the same phases backwards:
+update VJP, the transpose of the sum, send VJP.
+
+Two drivers per direction, sharing every tile function:
+- *block* drivers: the nodes split into blocks closed under the graph (whole graphs of
+  the batch); each thread runs the whole time loop of its blocks, no barrier per stage.
+- *stagewise* drivers: one large connected graph; every phase of a stage is a parallel
+  loop over tiles of nodes.
+
+The forward drivers keep the state after every RK4 step when given a ``states`` array
+(T*substeps+1, M, dz); the reverse drivers take the cotangent of every output state,
+GX (T+1, M, dx), recompute each step's stages from the kept state and return the
+parameter cotangent (one buffer per block or tile, reduced by the caller: deterministic,
+no races) and the initial state's.  ``dims`` = (kind, dx, du, dm, H, self_msg, zero_msg);
+``graph`` = (indptr, indices, weight), ``tgraph`` = (tindptr, tindices) its transpose.
+"""
+import numpy as np
+from numba import njit, prange
+
+from . import l2s_field, mpnode_field
+from .layers import JIT, dense_sum, transpose_tile
+
+MPNODE = 0
+L2S = 1
+TILE = 128  # rows per BLAS call inside a block (blocks hold a few hundred nodes)
+STAGE_TILE = 256  # rows per parallel task of the stagewise drivers (one big graph: fewer, larger tasks)
+
+# RK4 (classic): stage s reads z + C[s] h k_{s-1}; z+ = z + h sum_s B[s] k_s.
+RK_C = (0.0, 0.5, 0.5, 1.0)
+RK_B = (1.0 / 6.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 6.0)
+
+
+# ---------------------------------------------------------------------------
+# Sizes and work arrays
+# ---------------------------------------------------------------------------
+@njit(**JIT)
+def sent_width(dims):
+    """Columns a node sends its neighbours: dm (MP-NODE messages) or H (L2S)."""
+    return dims[4] if dims[0] == L2S else dims[3]
+
+
+@njit(**JIT)
+def state_width(dims):
+    return dims[1] + (0 if dims[0] == L2S else dims[3])
+
+
+@njit(**JIT)
+def caches(dims, slots, n, like):
+    """Per-stage caches of the field (slots, n, .): MP-NODE (V, H1, H2, -, -), L2S (V, H0, S, A, T)."""
+    kind, dx, du, dm, H = dims[0], dims[1], dims[2], dims[3], dims[4]
+    if kind == L2S:
+        w = (dx + du, H, H, H, H)
+    else:
+        w = (dx + du + dm, H, H, 0, 0)
+    dt = like.dtype
+    return (np.empty((slots, n, w[0]), dt), np.empty((slots, n, w[1]), dt), np.empty((slots, n, w[2]), dt),
+            np.empty((slots, n, w[3]), dt), np.empty((slots, n, w[4]), dt))
+
+
+@njit(**JIT)
+def stage_arrays(stage, z, za, zb):
+    """(input, output) arrays of a stage: z -> za -> zb -> za -> z (ping-pong buffers)."""
+    if stage == 0:
+        return z, za
+    if stage == 1:
+        return za, zb
+    if stage == 2:
+        return zb, za
+    return za, z
+
+
+@njit(**JIT)
+def dense_block(dense_A, n, off):
+    """The (n, n) adjacency of a dense block; (0, 0) when the block uses CSR."""
+    return dense_A[off:off + n * n].reshape(n, n)
+
+
+# ---------------------------------------------------------------------------
+# One stage: send, sum, update + fold
+# ---------------------------------------------------------------------------
+@njit(**JIT)
+def fold_tile(stage, h, K, z, zout, acc, i0, i1, zoff):
+    """Fold k of nodes i0..i1 into the step: stages 0..2 write the next stage's input
+    ``zout = z + C[s+1] h k`` and the running sum ``acc``; stage 3 finishes ``z += h/6 (acc + k)``."""
+    dz = z.shape[1]
+    if stage == 3:
+        c = h * z.dtype.type(RK_B[3])
+        for r in range(i1 - i0):
+            zi = i0 + r - zoff
+            for d in range(dz):
+                z[zi, d] += c * (acc[zi, d] + K[r, d])
+        return
+    c = h * z.dtype.type(RK_C[stage + 1])
+    if stage == 0:  # acc = k1 (acc's old contents are not read: they may be anything)
+        for r in range(i1 - i0):
+            zi = i0 + r - zoff
+            for d in range(dz):
+                acc[zi, d] = K[r, d]
+                zout[zi, d] = z[zi, d] + c * K[r, d]
+    else:  # acc += 2 k2, 2 k3: with k1 and k4 that is 6 x the RK4 weights
+        two = z.dtype.type(2)
+        for r in range(i1 - i0):
+            zi = i0 + r - zoff
+            for d in range(dz):
+                acc[zi, d] += two * K[r, d]
+                zout[zi, d] = z[zi, d] + c * K[r, d]
+
+
+@njit(**JIT)
+def send_tile(theta, dims, zin, u, i0, i1, zoff, C, slot, r0, r1):
+    """Phase 1 for nodes i0..i1 (cache rows r0..r1 of slot ``slot``); nothing for the MP-NODE."""
+    if dims[0] == L2S:
+        l2s_field.send_tile(theta, dims, zin, u, i0, i1, zoff, C[0][slot, r0:r1], C[1][slot, r0:r1],
+                            C[2][slot, r0:r1])
+
+
+@njit(**JIT)
+def update_tile(theta, dims, zin, u, S, sums, graph, i0, i1, zoff, C, slot, r0, r1):
+    """Phase 3 for nodes i0..i1: k (n, dz).  S: what everyone sent (L2S, rows ``i - zoff``)."""
+    if dims[0] == L2S:
+        return l2s_field.update_tile(theta, dims, S, sums, graph, i0, i1, zoff, C[1][slot, r0:r1],
+                                     C[3][slot, r0:r1], C[4][slot, r0:r1])
+    return mpnode_field.update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, C[0][slot, r0:r1],
+                                    C[1][slot, r0:r1], C[2][slot, r0:r1])
+
+
+@njit(**JIT)
+def stage_range(stage, h, theta, dims, z, zin, zout, acc, u, graph, lo, hi, zoff, A, sums, C):
+    """One RK stage of the closed node range lo..hi, tile by tile; caches C[.][stage] (rows i - zoff).
+
+    A non-empty ``A`` (N, N) says the range is copies of one N-node graph with that
+    adjacency (self-loop included when nodes hear themselves): the neighbour sums then
+    come from one GEMM into ``sums`` instead of the CSR rows.
+    """
+    kind, dx, zero_msg = dims[0], dims[1], dims[6]
+    for i0 in range(lo, hi, TILE):
+        i1 = min(hi, i0 + TILE)
+        send_tile(theta, dims, zin, u, i0, i1, zoff, C, stage, i0 - zoff, i1 - zoff)
+    src, col0 = (C[2][stage], 0) if kind == L2S else (zin, dx)
+    n_dense = 0
+    if A.shape[0] > 0 and not zero_msg:
+        dense_sum(A, src[lo - zoff:hi - zoff], col0, sums[lo - zoff:hi - zoff], 0)
+        n_dense = sums.shape[0]
+    for i0 in range(lo, hi, TILE):
+        i1 = min(hi, i0 + TILE)
+        K = update_tile(theta, dims, zin, u, C[2][stage], sums[:n_dense], graph, i0, i1, zoff, C, stage,
+                        i0 - zoff, i1 - zoff)
+        fold_tile(stage, h, K, z, zout, acc, i0, i1, zoff)
+
+
+@njit(**JIT)
+def substep_range(h, theta, dims, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C):
+    """One RK4 step of the closed node range lo..hi (z updated in place)."""
+    for stage in range(4):
+        zin, zout = stage_arrays(stage, z, za, zb)
+        stage_range(stage, h, theta, dims, z, zin, zout, acc, u, graph, lo, hi, zoff, A, sums, C)
+
+
+# ---------------------------------------------------------------------------
+# Reverse of one stage: update VJP, transpose of the sum, send VJP
+# ---------------------------------------------------------------------------
+@njit(**JIT)
+def k_cotangent(stage, h, a, gnext, i0, i1, zoff):
+    """Cotangent of k_s for nodes i0..i1: B[s] h a + C[s+1] h gnext (a: of the step's result,
+    gnext: of the next stage's input)."""
+    n, dz = i1 - i0, a.shape[1]
+    GK = np.empty((n, dz), a.dtype)
+    wb = h * a.dtype.type(RK_B[stage])
+    wc = h * a.dtype.type(RK_C[stage + 1]) if stage < 3 else a.dtype.type(0)
+    for r in range(n):
+        zi = i0 + r - zoff
+        for d in range(dz):
+            GK[r, d] = wb * a[zi, d]
+        if stage < 3:
+            for d in range(dz):
+                GK[r, d] += wc * gnext[zi, d]
+    return GK
+
+
+@njit(**JIT)
+def update_vjp_tile(stage, h, theta, dims, a, gnext, graph, i0, i1, zoff, C, slot, r0, r1, gtheta, gin, gagg, gh0):
+    """Reverse phase 3 for nodes i0..i1: the field's VJP up to each node's aggregate (gagg)."""
+    GK = k_cotangent(stage, h, a, gnext, i0, i1, zoff)
+    if dims[0] == L2S:
+        l2s_field.update_vjp_tile(theta, dims, GK, graph, i0, i1, zoff, C[1][slot, r0:r1], C[3][slot, r0:r1],
+                                  C[4][slot, r0:r1], gtheta, gagg, gh0)
+    else:
+        mpnode_field.update_vjp_tile(theta, dims, GK, graph[2], i0, i1, zoff, C[0][slot, r0:r1],
+                                     C[1][slot, r0:r1], C[2][slot, r0:r1], gtheta, gin, gagg)
+
+
+@njit(**JIT)
+def send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C, slot, r0, r1, gtheta, gin):
+    """Reverse phase 1 (L2S): the senders' cotangent gS through the send layers into gin."""
+    if dims[0] == L2S:
+        l2s_field.send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C[0][slot, r0:r1], C[1][slot, r0:r1],
+                                C[2][slot, r0:r1], gtheta, gin)
+
+
+@njit(**JIT)
+def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff, A, AT, sums, work, gtheta):
+    """Reverse one RK4 step of the closed range lo..hi: returns the cotangent of its start state.
+
+    zstart: the state at the step's start; a: the cotangent of the state at its end.  The
+    four stages are recomputed (caches in ``work``), then walked backwards.
+    """
+    z, za, zb, acc, C, gagg, gS, gh0 = work
+    kind, dx, self_msg = dims[0], dims[1], dims[5]
+    z[:] = zstart
+    substep_range(h, theta, dims, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C)
+    gz = a.copy()
+    gnext = za  # cotangent of the next stage's input (stage buffers are free now)
+    gin = zb
+    target, tcol = (gS, 0) if kind == L2S else (gin, dx)
+    for stage in range(3, -1, -1):
+        for i0 in range(lo, hi, TILE):
+            i1 = min(hi, i0 + TILE)
+            update_vjp_tile(stage, h, theta, dims, a, gnext, graph, i0, i1, zoff, C, stage, i0 - zoff, i1 - zoff,
+                            gtheta, gin, gagg, gh0)
+        if kind != L2S:
+            target = gin
+        if AT.shape[0] > 0:
+            dense_sum(AT, gagg[lo - zoff:hi - zoff], 0, target[lo - zoff:hi - zoff], tcol)
+        else:
+            for i0 in range(lo, hi, TILE):
+                transpose_tile(gagg, tgraph[0], tgraph[1], self_msg, i0, min(hi, i0 + TILE), zoff, target, tcol)
+        for i0 in range(lo, hi, TILE):
+            i1 = min(hi, i0 + TILE)
+            send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C, stage, i0 - zoff, i1 - zoff, gtheta, gin)
+        gz += gin
+        gnext, gin = gin, gnext
+    return gz
+
+
+# ---------------------------------------------------------------------------
+# Block drivers: one thread runs whole blocks through all steps.
+# X0 (M, dx), U (T, M, du); out (T+1, M, dx); states (T*substeps+1, M, dz) or empty.
+# Block b is made of copies of one dense_n[b]-node graph whose adjacency is the row-major
+# (N, N) matrix at dense_A[dense_off[b]:] (dense_n[b] = 0: use the CSR rows).
+# ---------------------------------------------------------------------------
+@njit(**JIT)
+def _block_work(dims, n, like):
+    dz = state_width(dims)
+    z = np.zeros((n, dz), like.dtype)
+    return z, np.empty_like(z), np.empty_like(z), np.empty_like(z), caches(dims, 4, n, like)
+
+
+@njit(parallel=True, **JIT)
+def rollout_blocks(theta, dims, x0, U, graph, block_ptr, dense_n, dense_off, dense_A, substeps, h, out, states):
+    """Forward rollout from x0 (messages start at 0): x at every output step into ``out``."""
+    dx = dims[1]
+    T = out.shape[0] - 1
+    keep = states.shape[0] > 0
+    for b in prange(len(block_ptr) - 1):
+        lo = block_ptr[b]
+        hi = block_ptr[b + 1]
+        z, za, zb, acc, C = _block_work(dims, hi - lo, x0)
+        A = dense_block(dense_A, dense_n[b], dense_off[b])
+        sums = np.empty((hi - lo, sent_width(dims)), x0.dtype)
+        z[:, :dx] = x0[lo:hi]
+        out[0, lo:hi] = x0[lo:hi]
+        if keep:
+            states[0, lo:hi] = z
+        for t in range(T):
+            for s in range(substeps):
+                substep_range(h, theta, dims, z, za, zb, acc, U[t], graph, lo, hi, lo, A, sums, C)
+                if keep:
+                    states[t * substeps + s + 1, lo:hi] = z
+            out[t + 1, lo:hi] = z[:, :dx]
+
+
+@njit(parallel=True, **JIT)
+def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, dense_A, dense_AT, substeps, h,
+               states, GX, gthetas, gx0):
+    """Reverse pass: cotangents GX (T+1, M, dx) of the output states -> gthetas[b] (block b's
+    parameter cotangent) and gx0 (M, dx).  ``states`` from rollout_blocks."""
+    dx = dims[1]
+    T = GX.shape[0] - 1
+    sw = sent_width(dims)
+    for b in prange(len(block_ptr) - 1):
+        lo = block_ptr[b]
+        hi = block_ptr[b + 1]
+        n = hi - lo
+        z, za, zb, acc, C = _block_work(dims, n, GX)
+        gS = np.empty((n if dims[0] == L2S else 0, sw), GX.dtype)
+        gh0 = np.empty((n if dims[0] == L2S else 0, dims[4]), GX.dtype)
+        work = (z, za, zb, acc, C, np.empty((n, sw), GX.dtype), gS, gh0)
+        A = dense_block(dense_A, dense_n[b], dense_off[b])
+        AT = dense_block(dense_AT, dense_n[b], dense_off[b])
+        sums = np.empty((n, sw), GX.dtype)
+        gtheta = gthetas[b]
+        gtheta[:] = 0
+        gz = np.zeros_like(z)
+        for t in range(T - 1, -1, -1):
+            gz[:, :dx] += GX[t + 1, lo:hi]
+            for s in range(substeps - 1, -1, -1):
+                gz = substep_vjp_range(h, theta, dims, states[t * substeps + s, lo:hi], gz, U[t], graph, tgraph,
+                                       lo, hi, lo, A, AT, sums, work, gtheta)
+        gx0[lo:hi] = gz[:, :dx] + GX[0, lo:hi]
+
+
+# ---------------------------------------------------------------------------
+# Stagewise drivers: one large graph, every phase a parallel loop over tiles.
+# ---------------------------------------------------------------------------
+@njit(parallel=True, **JIT)
+def rollout_stagewise(theta, dims, x0, U, graph, substeps, h, out, states):
+    """Forward rollout of one large graph.  Work arrays are per tile; only what L2S nodes send
+    (h0, s) is kept for the whole graph, so memory stays ~ M * (dz + 2 H) beside ``states``."""
+    M, dx = x0.shape
+    kind, du, H = dims[0], dims[2], dims[4]
+    T = out.shape[0] - 1
+    keep = states.shape[0] > 0
+    ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
+    z = np.zeros((M, state_width(dims)), x0.dtype)
+    z[:, :dx] = x0
+    za, zb, acc = np.empty_like(z), np.empty_like(z), np.empty_like(z)
+    H0 = np.empty((M if kind == L2S else 0, H), x0.dtype)
+    S = np.empty_like(H0)
+    none = np.empty((0, 0), x0.dtype)
+    out[0] = x0
+    if keep:
+        states[0] = z
+    for t in range(T):
+        for s in range(substeps):
+            for stage in range(4):
+                zin, zout = stage_arrays(stage, z, za, zb)
+                if kind == L2S:
+                    for k in prange(ntiles):
+                        i0 = k * STAGE_TILE
+                        i1 = min(M, i0 + STAGE_TILE)
+                        V = np.empty((i1 - i0, dx + du), x0.dtype)
+                        l2s_field.send_tile(theta, dims, zin, U[t], i0, i1, 0, V, H0[i0:i1], S[i0:i1])
+                for k in prange(ntiles):
+                    i0 = k * STAGE_TILE
+                    i1 = min(M, i0 + STAGE_TILE)
+                    C = caches(dims, 1, i1 - i0, x0)
+                    if kind == L2S:
+                        K = l2s_field.update_tile(theta, dims, S, none, graph, i0, i1, 0, H0[i0:i1], C[3][0], C[4][0])
+                    else:
+                        K = mpnode_field.update_tile(theta, dims, zin, U[t], none, graph, i0, i1, 0, C[0][0],
+                                                     C[1][0], C[2][0])
+                    fold_tile(stage, h, K, z, zout, acc, i0, i1, 0)
+            if keep:
+                states[t * substeps + s + 1] = z
+        out[t + 1] = z[:, :dx]
+
+
+@njit(parallel=True, **JIT)
+def substep_tiles(h, theta, dims, z, za, zb, acc, u, graph, C):
+    """One RK4 step of a whole graph, keeping every stage's caches C (4, M, .) for the VJP."""
+    M = z.shape[0]
+    kind = dims[0]
+    ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
+    none = np.empty((0, 0), z.dtype)
+    for stage in range(4):
+        zin, zout = stage_arrays(stage, z, za, zb)
+        if kind == L2S:
+            for k in prange(ntiles):
+                i0 = k * STAGE_TILE
+                i1 = min(M, i0 + STAGE_TILE)
+                send_tile(theta, dims, zin, u, i0, i1, 0, C, stage, i0, i1)
+        for k in prange(ntiles):
+            i0 = k * STAGE_TILE
+            i1 = min(M, i0 + STAGE_TILE)
+            K = update_tile(theta, dims, zin, u, C[2][stage], none, graph, i0, i1, 0, C, stage, i0, i1)
+            fold_tile(stage, h, K, z, zout, acc, i0, i1, 0)
+
+
+@njit(parallel=True, **JIT)
+def _add_rows(acc, G):
+    for i in prange(acc.shape[0]):
+        for d in range(G.shape[1]):
+            acc[i, d] += G[i, d]
+
+
+@njit(parallel=True, **JIT)
+def vjp_stagewise(theta, dims, U, graph, tgraph, substeps, h, states, GX, gthetas, gx0):
+    """As vjp_blocks for one large graph; gthetas (ntiles, P) holds one partial sum per tile."""
+    T1, M, dx = GX.shape
+    T = T1 - 1
+    kind, self_msg = dims[0], dims[5]
+    sw = sent_width(dims)
+    ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
+    z = np.empty((M, state_width(dims)), GX.dtype)
+    za, zb, acc = np.empty_like(z), np.empty_like(z), np.empty_like(z)
+    C = caches(dims, 4, M, GX)
+    gagg = np.empty((M, sw), GX.dtype)
+    gS = np.empty((M if kind == L2S else 0, sw), GX.dtype)
+    gh0 = np.empty((M if kind == L2S else 0, dims[4]), GX.dtype)
+    gthetas[:] = 0
+    gz = np.zeros_like(z)
+    gnew, gbuf0, gbuf1 = np.empty_like(z), np.empty_like(z), np.empty_like(z)
+    for t in range(T - 1, -1, -1):
+        _add_rows(gz[:, :dx], GX[t + 1])
+        for s in range(substeps - 1, -1, -1):
+            z[:] = states[t * substeps + s]
+            substep_tiles(h, theta, dims, z, za, zb, acc, U[t], graph, C)
+            gnew[:] = gz
+            gnext, gin = gbuf0, gbuf1
+            for stage in range(3, -1, -1):
+                for k in prange(ntiles):
+                    i0 = k * STAGE_TILE
+                    i1 = min(M, i0 + STAGE_TILE)
+                    update_vjp_tile(stage, h, theta, dims, gz, gnext, graph, i0, i1, 0, C, stage, i0, i1,
+                                    gthetas[k], gin, gagg, gh0)
+                for k in prange(ntiles):
+                    i0 = k * STAGE_TILE
+                    i1 = min(M, i0 + STAGE_TILE)
+                    if kind == L2S:
+                        transpose_tile(gagg, tgraph[0], tgraph[1], self_msg, i0, i1, 0, gS, 0)
+                        send_vjp_tile(theta, dims, gS, gh0, i0, i1, 0, C, stage, i0, i1, gthetas[k], gin)
+                    else:
+                        transpose_tile(gagg, tgraph[0], tgraph[1], self_msg, i0, i1, 0, gin, dx)
+                    gnew[i0:i1] += gin[i0:i1]
+                gnext, gin = gin, gnext
+            gz[:] = gnew
+    gx0[:] = gz[:, :dx] + GX[0]

@@ -1,0 +1,62 @@
+"""Training losses on rollouts, written once in NumPy on top of the engine's VJP.
+
+A loss compares a rollout ``pred`` with the truth ``x``, both (T+1, M, dx) in the
+model's normalised units: summed over steps 1..T and state dimensions, divided by the
+number of nodes (the rollouts of a batch are averaged per node).  Each loss returns its
+value and its cotangent with respect to ``pred``; `value_and_grad` turns that into the
+gradient of the parameters and initial states through `engine.forward_with_vjp`.
+"""
+import math
+
+import numpy as np
+
+from . import engine
+
+
+def huber(pred, x, n_nodes):
+    """Huber (delta 1) of pred - x: (value, cotangent like pred).
+
+    With c = clip(e, -1, 1), huber(e) = c (e - c / 2) and its derivative is c.
+    """
+    e = pred[1:] - x[1:]
+    c = np.clip(e, -1.0, 1.0)
+    value = float(np.sum(c * (e - 0.5 * c), dtype=np.float64)) / n_nodes
+    return value, _cotangent(pred, c, 1.0 / n_nodes)
+
+
+def mse(pred, x, n_nodes):
+    """Squared error of pred - x: (value, cotangent like pred)."""
+    e = pred[1:] - x[1:]
+    value = float(np.sum(e * e, dtype=np.float64)) / n_nodes
+    return value, _cotangent(pred, e, 2.0 / n_nodes)
+
+
+def _cotangent(pred, de, scale):
+    """scale * de at steps 1..T, 0 at step 0 (the initial state is given, not predicted)."""
+    g = np.empty_like(pred)
+    g[0] = 0
+    np.multiply(de, pred.dtype.type(scale), out=g[1:], casting="unsafe")
+    return g
+
+
+LOSSES = {"huber": huber, "mse": mse}
+
+
+def value(pred, x, loss="huber", n_nodes=None):
+    """The loss alone; inf when a prediction is non-finite (a blown-up validation rollout)."""
+    if not np.all(np.isfinite(pred)):
+        return math.inf
+    return LOSSES[loss](pred.astype(np.float64), x, n_nodes or x.shape[1])[0]
+
+
+def value_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes=None, driver="auto"):
+    """Loss of the rollout from x[0] against x[1..T], and its exact gradient.
+
+    x : ndarray, shape (T+1, M, dx), the true states (x[0] is the initial state);
+    u : (T, M, du) or None; n_nodes : the divisor (default M; a part of a batch passes
+    the batch's).  Returns (loss, gtheta like theta, gx0 of shape (M, dx)).
+    """
+    pred, vjp = engine.forward_with_vjp(spec, theta, x[0], graph, u, x.shape[0] - 1, driver)
+    total, gpred = LOSSES[loss](pred, np.asarray(x, dtype=pred.dtype), n_nodes or x.shape[1])
+    gtheta, gx0 = vjp(gpred)
+    return total, gtheta, gx0

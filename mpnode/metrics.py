@@ -1,0 +1,89 @@
+"""Error measures of predictions against the truth: normalised MSE, blow-ups, predictable horizon.
+
+Normalised MSE (the paper's error): the squared error of every state coordinate divided
+by the variance of that state dimension over the true states (all trajectories, steps
+and nodes), averaged over trajectories, nodes and dimensions.  1 means "no better than
+predicting the mean"; 0 is perfect.
+
+A prediction that becomes non-finite, or leaves a box ten times as wide as the data (per
+dimension: [mid - 5 r, mid + 5 r] with mid and r the midpoint and range of the true
+states), counts as blown up; its error from that step on is infinite.
+
+Averages hide where a chaotic prediction parts from the truth, so the *predictable
+horizon* is reported too: per trajectory, the first step t >= 1 at which its own
+normalised MSE exceeds a threshold (0.1 and 1.0 by default; a blown-up step exceeds
+every threshold), and the lower median of that step over trajectories.
+"""
+import numpy as np
+
+HORIZON_THRESHOLDS = (0.1, 1.0)
+
+
+def normalised_sq_error(pred, truth, spread=None):
+    """(pred - truth)^2 / the per-dimension variance of ``spread`` (default: ``truth``), float64,
+    shape of ``pred`` (non-finite values become inf); a dimension that does not vary counts
+    with variance 1."""
+    d = truth.shape[-1]
+    var = np.asarray(truth if spread is None else spread, dtype=np.float64).reshape(-1, d).var(axis=0)
+    var = np.where(var > 0, var, 1.0)
+    with np.errstate(all="ignore"):
+        err = (np.asarray(pred, dtype=np.float64) - truth) ** 2 / var
+    err[~np.isfinite(err)] = np.inf
+    return err
+
+
+def nmse(pred, truth, spread=None):
+    """Normalised MSE over every entry (steps 1..T: pass pred[:, 1:], truth[:, 1:]); the
+    variances come from ``spread`` (e.g. a whole file when ``truth`` is a sample of it)."""
+    return float(normalised_sq_error(pred, truth, spread).mean())
+
+
+def data_box(truth):
+    """(mid, r): per-dimension midpoint and range of ``truth`` (..., dx), r floored above 0."""
+    d = truth.shape[-1]
+    flat = truth.reshape(-1, d)
+    lo, hi = flat.min(axis=0), flat.max(axis=0)
+    mid, r = (lo + hi) / 2, hi - lo
+    return mid, np.maximum(r, np.maximum(1e-12, 1e-6 * np.abs(mid)))
+
+
+def blow_up_mask(pred, truth=None, box=None):
+    """Boolean (B, T+1): prediction non-finite or outside ten times the box at that step, and
+    every step after it.  The box is ``data_box(truth)`` unless ``box`` = (mid, r) is given."""
+    mid, r = data_box(truth) if box is None else box
+    with np.errstate(invalid="ignore", over="ignore"):
+        outside = ~(np.abs(pred - mid) <= 5 * r)  # NaN compares False -> outside
+    bad = outside.any(axis=(2, 3))
+    return np.logical_or.accumulate(bad, axis=1)
+
+
+def nmse_per_step(pred, truth, bad=None):
+    """Normalised MSE per step, shape (T+1,); steps where some trajectory blew up (``bad``) are inf."""
+    err = normalised_sq_error(pred, truth).mean(axis=(0, 2, 3))
+    if bad is not None:
+        err[bad.any(axis=0)] = np.inf
+    return err
+
+
+def predictable_horizon(pred, truth, dt, thresholds=HORIZON_THRESHOLDS, bad=None):
+    """Where predictions part from the truth: per threshold, the first step each exceeds it.
+
+    pred, truth : ndarray, shape (B, T+1, N, dx);  bad : (B, T+1) blow-up mask or None.
+    Returns {str(threshold): {"median_step", "median_time", "beyond_horizon" (trajectories
+    never above it), "first_step" (per trajectory, None if never)}}; the median is the lower
+    median with "never" counted as beyond T, None when that falls beyond T.
+    """
+    err = normalised_sq_error(pred, truth).mean(axis=(2, 3))  # (B, T+1)
+    if bad is not None:
+        err[bad] = np.inf
+    b, t1 = err.shape
+    out = {}
+    for thr in thresholds:
+        above = err[:, 1:] > thr
+        first = np.where(above.any(axis=1), above.argmax(axis=1) + 1, t1)  # t1 = "beyond T"
+        med = int(np.sort(first)[(b - 1) // 2]) if b else t1
+        out[f"{thr:g}"] = {"median_step": med if med < t1 else None,
+                           "median_time": med * float(dt) if med < t1 else None,
+                           "beyond_horizon": int((first >= t1).sum()),
+                           "first_step": [int(f) if f < t1 else None for f in first]}
+    return out
