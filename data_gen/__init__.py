@@ -1,4 +1,4 @@
-"""Reference simulators: the systems of ../shared/spec/systems.md turned into trajectory files.
+"""Reference simulators: the systems of docs/systems.md turned into trajectory files.
 
 This package knows physics and nothing of learning.  Typical use::
 

@@ -1,4 +1,4 @@
-"""quadrotor_load: n quadrotors carrying one cable-suspended load (../shared/spec/quadrotor.md).
+"""quadrotor_load: n quadrotors carrying one cable-suspended load (docs/systems.md, "quadrotor_load").
 
 The physics (``rhs``), the statics (``static_equilibrium``), the doorway scenario with
 its closed-loop controller (``Reference``, ``Controller``) and the data-set driver

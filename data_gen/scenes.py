@@ -1,7 +1,7 @@
 """Scenes: everything that decides a generated data set, by name or from a TOML file.
 
 A Scene is system + parameters + graph + initial-state sampler + B, T, dt + seeds.
-The built-in scenes are the data sets of the MP-NODE paper (../shared/spec/systems.md);
+The built-in scenes are the data sets of the MP-NODE paper (docs/systems.md);
 anything else is a TOML file with this schema (example: scenes/example_gene_ring.toml)::
 
     description  = "one line"   # optional

@@ -1,4 +1,4 @@
-"""The reference physics of ../shared/spec/systems.md: right-hand sides and parameters.
+"""The reference physics of docs/systems.md: right-hand sides and parameters.
 
 Every right-hand side ``f(t, y, ...)`` takes the flat state of ONE trajectory,
 ``y : ndarray, shape (N*dx,)`` laid out node after node (``y.reshape(N, dx)``), and
