@@ -188,14 +188,6 @@ def body_z(q):
     return np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), w * w - x * x - y * y + z * z], axis=-1) / qq[..., None]
 
 
-def quat_to_rotmat(q):
-    """Rotation matrix (3, 3) of the unit quaternion q = [w, x, y, z] (body to world)."""
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-
-
 def rotmat_to_quat(R):
     """Unit quaternion [w, x, y, z] with w >= 0 of a rotation matrix (Shepperd's method)."""
     t = np.trace(R)

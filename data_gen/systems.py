@@ -197,7 +197,8 @@ def get_system(name, source="system", field="system"):
 
 
 def make_rhs(system, params, graph):
-    """f(t, y) for one trajectory of ``system`` on ``graph``.
+    """f(t, y) for one trajectory of ``system`` on ``graph``; for the controlled quadrotor_load,
+    f(t, y, F) with the thrusts F (n, 4) held over the step (its state includes the load).
 
     params : mapping holding at least the system's scalar parameters and drawn arrays
     (e.g. a file's root attributes merged with its `params/` group); extra keys are ignored.
