@@ -25,10 +25,11 @@ def quick_run(tmp_path_factory):
 def test_results_has_every_section_and_figure(quick_run):
     text = (quick_run / "RESULTS.md").read_text()
     for title in ("1. Messages matter", "2. Zero-shot to unseen topologies", "3. Zero-shot to more nodes",
-                  "4. Fine-tuning", "5. Message size", "6. Speed against error"):
+                  "4. Fine-tuning", "5. Message size", "6. Speed against error", "7. Aggregation",
+                  "8. Learning-rate schedule"):
         assert f"## {title}" in text
     for fig in ("messages_loss", "messages_trajectories", "messages_norms", "finetune_curves", "message_size",
-                "speed_vs_error"):
+                "speed_vs_error", "schedule_val_loss"):
         png = quick_run / "figures" / f"{fig}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"figures/{fig}.png" in text
@@ -39,6 +40,15 @@ def test_every_run_completed(quick_run):
         res = json.loads(path.read_text())
         assert res["status"] == "completed", (path, res["message"])
         assert res["epochs"] == res["spec"]["epochs"]
+
+
+def test_aggregation_runs_use_the_recipes_aggregations(quick_run):
+    numbers = json.loads((quick_run / "results" / "aggregation.json").read_text())
+    assert {name: numbers[name]["aggregation"] for name in
+            ("gene16_paper_mean", "gene16_default", "gene16_default_valg", "gene16_l2s")} == {
+        "gene16_paper_mean": "mean", "gene16_default": "scaled", "gene16_default_valg": "scaled", "gene16_l2s": "sum"}
+    assert all(v["nmse"] > 0 for case in ("gene16_default", "gene16_l2s") for k, v in numbers[case].items()
+               if isinstance(v, dict))
 
 
 def test_finetune_curves_and_determinism(quick_run):
