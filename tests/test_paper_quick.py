@@ -26,7 +26,7 @@ def test_results_has_every_section_and_figure(quick_run):
     text = (quick_run / "RESULTS.md").read_text()
     for title in ("1. Messages matter", "2. Zero-shot to unseen topologies", "3. Zero-shot to more nodes",
                   "4. Fine-tuning", "5. Message size", "6. Speed against error", "7. Aggregation",
-                  "8. Learning-rate schedule"):
+                  "8. Learning-rate schedule", "9. Quadrotor swarm"):
         assert f"## {title}" in text
     for fig in ("messages_loss", "messages_trajectories", "messages_norms", "finetune_curves", "message_size",
                 "speed_vs_error", "schedule_val_loss"):

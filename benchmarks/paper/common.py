@@ -34,7 +34,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 #: the experiments, in the order of RESULTS.md
 EXPERIMENTS = ("exp_messages", "exp_topologies", "exp_more_nodes", "exp_finetune", "exp_message_size", "exp_speed",
-               "exp_aggregation", "exp_schedule")
+               "exp_aggregation", "exp_schedule",
+               "exp_quadrotor")
 PAPER_EPOCHS = 4000
 
 
@@ -420,7 +421,8 @@ def run_line(res):
             f"{res['epochs']} epochs" + (f" (curriculum {s['curriculum']} x {s['curriculum_epochs']})"
                                          if s["curriculum"] else ""),
             f"seed {s['seed']}", f"lr {s.get('lr', 1e-3):g}",
-            f"dm {s['message_dim']}" + (", zero messages" if s["zero_messages"] else ""),
+            (f"dm {s['message_dim']}" + (", zero messages" if s["zero_messages"] else "")
+             if s.get("kind", "mpnode") == "mpnode" else f"kind {s['kind']}"),
             f"{res.get('train_seconds', res['seconds']) / 60:.1f} min"]
     if s["init_from"]:
         bits.append(f"from {s['init_from']}")

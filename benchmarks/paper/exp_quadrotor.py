@@ -1,0 +1,121 @@
+"""Experiment 9 -- the quadrotor swarm: message sizes against L2S, and 3 -> 6 quadrotors (paper
+Fig. 7, Fig. 9 and Table 2's quadrotor column).
+
+On quad3 (500 trajectories, a fixed wall-time budget each): MP-NODE with message sizes 7, 13
+and 20 (the paper's mean), MP-NODE 20 with the scaled sum, and L2S.  Each is scored on fresh
+quad3 data and zero-shot on quad6.  On quad6 (80 trajectories, the paper's 4000 epochs, test
+curve on fresh quad6 data): MP-NODE 20 fine-tuned from quad3 and from scratch, L2S fine-tuned
+and from scratch, and the scaled MP-NODE fine-tuned; efficiency = min test nMSE x its epoch.
+
+    python benchmarks/paper/exp_quadrotor.py [--quick]
+"""
+import exp_finetune
+from common import DataSpec, RunSpec, evaluate_nmse, main, run_line, table
+
+NAME = "quadrotor"
+TITLE = "9. Quadrotor swarm: message sizes, L2S, 3 -> 6 quadrotors (paper Fig. 7, 9, Table 2)"
+MINUTES = 4
+DIMS = (7, 13, 20)
+#: Table 2, quadrotors: MP-NODE fine-tuned 236.00, scratch N/A, L2S 476.0
+PAPER = {"q6_ft_m20": 236.0, "q6_ft_l2s": 476.0}
+
+
+def q3_train(mode):
+    return DataSpec("quad3", mode.pick(500, 6), 0)
+
+
+def q3_test(mode):
+    return DataSpec("quad3", mode.pick(200, 4), 1)
+
+
+def q6_train(mode):
+    return DataSpec("quad6", mode.pick(80, 6), 2)
+
+
+def q6_test(mode):
+    return DataSpec("quad6", mode.pick(200, 4), 3)
+
+
+def source_runs(mode):
+    """The quad3 models (name -> RunSpec), each for the same wall time."""
+    budget = () if mode.quick else (("time_limit", MINUTES * 60),)
+    epochs = mode.pick(100_000, 3)
+    specs = [RunSpec(f"q3_m{m}", (q3_train(mode),), epochs, message_dim=m, extra=budget) for m in DIMS]
+    specs.append(RunSpec("q3_m20_scaled", (q3_train(mode),), epochs, message_dim=20, aggregation="scaled",
+                         extra=budget))
+    specs.append(RunSpec("q3_l2s", (q3_train(mode),), epochs, kind="l2s", extra=budget))
+    return {s.name: s for s in specs}
+
+
+def target_runs(mode):
+    """The quad6 runs: (name, label, RunSpec)."""
+    common = dict(train=(q6_train(mode),), epochs=mode.pick(4000, 4), test=q6_test(mode),
+                  test_points=mode.pick(10, 2))
+    return [
+        ("q6_ft_m20", "MP-NODE 20, fine-tuned from quad3", RunSpec("q6_ft_m20", init_from="q3_m20", message_dim=20,
+                                                                    **common)),
+        ("q6_scratch_m20", "MP-NODE 20, from scratch", RunSpec("q6_scratch_m20", message_dim=20, **common)),
+        ("q6_ft_m20_scaled", "MP-NODE 20 scaled, fine-tuned from quad3",
+         RunSpec("q6_ft_m20_scaled", init_from="q3_m20_scaled", message_dim=20, **common)),
+        ("q6_ft_l2s", "L2S, fine-tuned from quad3", RunSpec("q6_ft_l2s", init_from="q3_l2s", kind="l2s", **common)),
+        ("q6_scratch_l2s", "L2S, from scratch", RunSpec("q6_scratch_l2s", kind="l2s", **common)),
+    ]
+
+
+def runs(mode):
+    return list(source_runs(mode).values()) + [s for _, _, s in target_runs(mode)]
+
+
+def data(mode):
+    return [q3_test(mode), q6_test(mode)]
+
+
+def analyse(ctx):
+    numbers, rows3, rows6 = {}, [], []
+    for name in source_runs(ctx.mode):
+        res, model = ctx.result(name), ctx.model(name)
+        ev3, ev6 = (evaluate_nmse(model, ctx.data(d(ctx.mode))) for d in (q3_test, q6_test))
+        numbers[name] = {"quad3_nmse": ev3.nmse, "quad6_zero_shot_nmse": ev6.nmse, "quad6_blown_up": ev6.n_bad,
+                         "epochs": res["epochs"], "aggregation": model.spec.aggregation, "run": run_line(res)}
+        rows3.append([name, model.spec.kind, model.spec.message_dim, model.spec.aggregation, res["epochs"],
+                      ev3.nmse, ev6.nmse])
+    for name, label, _ in target_runs(ctx.mode):
+        res = ctx.result(name)
+        best, epoch, product = exp_finetune.efficiency(exp_finetune.model_curve(res))
+        numbers[name] = {"min_nmse": best, "epoch": epoch, "product": product, "run": run_line(res)}
+        rows6.append([label, res["test_curve"][0][1] if res["spec"]["init_from"] else "", best, epoch, product,
+                      PAPER.get(name, "N/A" if "scratch" in name and "m20" in name else "")])
+    hold = hold_errors(ctx)
+    numbers["hold_initial_state"] = hold
+    budget = "3 epochs" if ctx.mode.quick else f"{MINUTES} minutes of wall time each (two at a time, one thread each)"
+    text = [
+        f"quad3 models ({ctx.result('q3_m20')['train_trajectories']} trajectories, {budget}); test sets: "
+        f"{ctx.data(q3_test(ctx.mode)).n_trajectories} fresh quad3 and {ctx.data(q6_test(ctx.mode)).n_trajectories}"
+        " quad6 trajectories (paper Fig. 7: MP-NODE message sizes and L2S):",
+        "",
+        table(["run", "kind", "message size", "aggregation", "epochs", "quad3 nMSE", "quad6 zero-shot nMSE"], rows3),
+        "",
+        f"Holding the initial state scores nMSE {hold['quad3']:.3g} on quad3 and {hold['quad6']:.3g} on quad6.",
+        "",
+        f"quad6, {ctx.result('q6_ft_m20')['train_trajectories']} trajectories, "
+        f"{ctx.result('q6_ft_m20')['spec']['epochs']} epochs, test curve at {ctx.result('q6_ft_m20')['spec']['test_points']}"
+        " evenly spaced epochs (paper Fig. 9 and Table 2; efficiency = min test nMSE x the epoch of that model, the"
+        " paper's metric in its units is not nMSE, so compare ratios, not values):",
+        "",
+        table(["run", "zero-shot nMSE", "min test nMSE", "epoch", "efficiency", "paper (Table 2)"], rows6),
+        "",
+        "Runs: " + "; ".join(f"**{n}**: {numbers[n]['run']}" for n in numbers if isinstance(numbers[n], dict)
+                             and "run" in numbers[n]) + ".",
+    ]
+    return "\n".join(text), numbers
+
+
+def hold_errors(ctx):
+    """nMSE of holding the initial state on the quad3 and quad6 test sets."""
+    from exp_aggregation import hold_nmse
+
+    return {"quad3": hold_nmse(ctx.data(q3_test(ctx.mode))), "quad6": hold_nmse(ctx.data(q6_test(ctx.mode)))}
+
+
+if __name__ == "__main__":
+    main(["exp_quadrotor"], description=__doc__)
