@@ -121,7 +121,7 @@ def test_the_recipe_fills_what_the_user_leaves_unset(tmp_path):
     data = gene_file(tmp_path / "g.h5")
     res = run("train", data, "-o", tmp_path / "auto.h5", "--epochs", 1, "--hidden", 8)
     assert res.exit_code == 0, res.output
-    assert "recipe auto for gene: aggregation scaled" in res.output
+    assert "recipe auto for gene: aggregation scaled" in res.output and "val_graphs 1" in res.output
     auto = Model.load(tmp_path / "auto.h5")
     assert auto.spec.aggregation == "scaled" and auto.attrs["recipe"] == "auto"
     assert auto.spec.mean_degree == pytest.approx(8.0)  # BA(16, 8): 64 edges, both directions, over 16 nodes

@@ -426,7 +426,9 @@ def run_line(res):
             f"{res.get('train_seconds', res['seconds']) / 60:.1f} min"]
     if s["init_from"]:
         bits.append(f"from {s['init_from']}")
-    if res["status"] != "completed":
+    if res["status"] == "time_limit":
+        bits.append("ended by its time limit")
+    elif res["status"] != "completed":
         bits.append(f"**{res['status'].upper()}**: {res['message']}")
     return "; ".join(bits)
 
