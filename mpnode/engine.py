@@ -302,7 +302,7 @@ def resolve_backend(backend="auto", purpose="the compiled backend"):
 
         _warned.append(True)
         warnings.warn(f"numba cannot be imported ({problem}): using the NumPy path, which rolls out "
-                      "the same models ~10-50x slower and cannot train", RuntimeWarning, stacklevel=3)
+                      "the same models several times slower and cannot train", RuntimeWarning, stacklevel=3)
     return "numpy"
 
 
