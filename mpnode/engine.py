@@ -268,6 +268,7 @@ def _n_threads():
 #: (mpnode.numpy_engine: the same rollout in plain NumPy; slow, no training)
 BACKENDS = ("auto", "numba", "numpy")
 _numba_problem = []  # [] untried; [None] numba imports; [reason] it does not
+_warned = []  # [True] once the fallback to NumPy has been announced
 
 
 def numba_problem():
@@ -304,9 +305,6 @@ def resolve_backend(backend="auto", purpose="the compiled backend"):
         warnings.warn(f"numba cannot be imported ({problem}): using the NumPy path, which rolls out "
                       "the same models several times slower and cannot train", RuntimeWarning, stacklevel=3)
     return "numpy"
-
-
-_warned = []
 
 
 # ---------------------------------------------------------------------------
