@@ -23,8 +23,13 @@ import math
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
-from numba import njit
 from scipy.integrate import solve_ivp
+
+try:
+    from numba import njit
+except ImportError:  # without numba the RHS runs as plain Python (same results, far slower), so that
+    def njit(**_):   # importing the scenes -- which `mpnode eval` does -- still works (the NumPy path)
+        return lambda f: f
 
 from mpnode.data import Trajectories
 from mpnode.errors import InputError, NumericalError

@@ -10,6 +10,7 @@ from .graph import Graph, block_diagonal  # noqa: F401
 
 _LAZY = {
     "Model": "model",
+    "Simulator": "simulator",
     "loss_and_grad": "model",
     "Trajectories": "data",
     "read_trajectories": "data",

@@ -262,10 +262,57 @@ def _n_threads():
 
 
 # ---------------------------------------------------------------------------
+# Backends: the compiled kernels, or the NumPy path where numba cannot be imported.
+# ---------------------------------------------------------------------------
+#: "auto" (numba when it imports, else numpy), "numba" (the compiled kernels), "numpy"
+#: (mpnode.numpy_engine: the same rollout in plain NumPy; slow, no training)
+BACKENDS = ("auto", "numba", "numpy")
+_numba_problem = []  # [] untried; [None] numba imports; [reason] it does not
+_warned = []  # [True] once the fallback to NumPy has been announced
+
+
+def numba_problem():
+    """None when the compiled kernels import, else why not (tried once, then remembered)."""
+    if not _numba_problem:
+        try:
+            from . import kernels  # noqa: F401  (imports numba and declares the kernels; compiles nothing)
+            _numba_problem.append(None)
+        except Exception as e:  # a missing numba, or a broken one (llvmlite raises OSError, ...)
+            _numba_problem.append(f"{type(e).__name__}: {e}")
+    return _numba_problem[0]
+
+
+def resolve_backend(backend="auto", purpose="the compiled backend"):
+    """"numba" or "numpy" for a requested backend (BACKENDS).
+
+    "auto" falls back to "numpy" when numba cannot be imported, with one warning per
+    process; "numba" then raises ImportError saying why.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, not {backend!r}")
+    if backend == "numpy":
+        return backend
+    problem = numba_problem()
+    if problem is None:
+        return "numba"
+    if backend == "numba":
+        raise ImportError(f"{purpose} needs numba, which cannot be imported here ({problem}); "
+                          "install numba, or roll out with backend='numpy' (no training)")
+    if not _warned:
+        import warnings
+
+        _warned.append(True)
+        warnings.warn(f"numba cannot be imported ({problem}): using the NumPy path, which rolls out "
+                      "the same models several times slower and cannot train", RuntimeWarning, stacklevel=3)
+    return "numpy"
+
+
+# ---------------------------------------------------------------------------
 # Entry points
 # ---------------------------------------------------------------------------
-def _prepare(spec, theta, graph, u, n_steps, n_nodes, driver):
-    dtype = theta.dtype
+def checked_controls(spec, graph, u, n_steps, n_nodes, dtype):
+    """u as a contiguous (n_steps, M, du) array in ``dtype`` (width 0 for None), after checking
+    that the parameters' dtype, u and the graph fit the states (ValueError, TypeError)."""
     if dtype not in (np.float32, np.float64):
         raise TypeError(f"parameters must be float32 or float64, not {dtype}")
     if u is None:
@@ -277,6 +324,12 @@ def _prepare(spec, theta, graph, u, n_steps, n_nodes, driver):
         raise ValueError(f"u has shape {u.shape}, expected {(n_steps, n_nodes, spec.control_dim)}")
     if graph.n_nodes != n_nodes:
         raise ValueError(f"graph has {graph.n_nodes} nodes but the states have {n_nodes}")
+    return u
+
+
+def _prepare(spec, theta, graph, u, n_steps, n_nodes, driver):
+    dtype = theta.dtype
+    u = checked_controls(spec, graph, u, n_steps, n_nodes, dtype)
     h = dtype.type(spec.dt / spec.substeps)
     return u, plan_for(graph, spec, dtype, driver), h
 
@@ -301,35 +354,69 @@ def _edgeless(n):
     return Graph(np.zeros(n + 1, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
 
-def _run(spec, theta, x0, graph, u, n_steps, driver, keep_states):
-    """The forward rollout: (x (n_steps+1, M, dx), states or None, u, plan, h)."""
+def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states):
+    """The forward rollout from the full state z0: (x (n_steps+1, M, dx), states or None,
+    z at the end, u, plan, h)."""
     from . import kernels
 
     theta = np.ascontiguousarray(theta)
-    x0 = np.ascontiguousarray(x0, dtype=theta.dtype)
-    m = x0.shape[0]
+    z0 = np.ascontiguousarray(z0, dtype=theta.dtype)
+    m = z0.shape[0]
+    if z0.shape != (m, spec.state_width):
+        raise ValueError(f"the full state has shape {z0.shape}, expected (M, {spec.state_width}) (x, then messages)")
     u, plan, h = _prepare(spec, theta, graph, u, n_steps, m, driver)
     out = np.empty((n_steps + 1, m, spec.state_dim), dtype=theta.dtype)
     n_states = n_steps * spec.substeps + 1 if keep_states else 0
     states = np.empty((n_states, m if keep_states else 0, spec.state_width), dtype=theta.dtype)
+    zend = np.empty_like(z0)
     g = (graph.indptr, graph.indices, plan.weight)
     with single_threaded_blas():
         if plan.blocks is None:
-            kernels.rollout_stagewise(theta, spec.dims, x0, u, g, spec.substeps, h, out, states)
+            kernels.rollout_stagewise(theta, spec.dims, z0, u, g, spec.substeps, h, out, states, zend)
         else:
-            kernels.rollout_blocks(theta, spec.dims, x0, u, g, plan.blocks, plan.dense_n, plan.dense_off,
-                                   plan.dense_A, spec.substeps, h, out, states)
-    return out, states, u, plan, h
+            kernels.rollout_blocks(theta, spec.dims, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off,
+                                   plan.dense_A, spec.substeps, h, out, states, zend)
+    return out, states, zend, u, plan, h
 
 
-def forward(spec, theta, x0, graph, u=None, n_steps=1, driver="auto"):
+def initial_state(spec, x0, dtype=None):
+    """The full state [x0, 0] (M, dx + dm) a rollout starts from: messages start at 0."""
+    x0 = np.asarray(x0)
+    z0 = np.zeros((x0.shape[0], spec.state_width), dtype=dtype or x0.dtype)
+    z0[:, :spec.state_dim] = x0
+    return z0
+
+
+def forward(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", backend="auto"):
     """Integrate from x0 (messages start at 0).
 
     x0 : ndarray, shape (M, dx); u : ndarray, shape (n_steps, M, du) or None;
     returns x : ndarray, shape (n_steps+1, M, dx), in theta's dtype.
     driver : see plan_for.  For kind "node" the graph only gives M (whole systems).
+    backend : see `resolve_backend` ("auto": the compiled kernels, NumPy without numba).
     """
-    return forward_with_vjp(spec, theta, x0, graph, u, n_steps, driver, keep_states=False)[0]
+    z0 = initial_state(spec, x0, np.asarray(theta).dtype)
+    return integrate(spec, theta, z0, graph, u, n_steps, driver, backend)[0]
+
+
+def integrate(spec, theta, z0, graph, u=None, n_steps=1, driver="auto", backend="auto"):
+    """Integrate from a full state z0 = [x, m] (M, dx + dm), e.g. where an earlier call stopped.
+
+    Returns (x, z): x (n_steps+1, M, dx) as `forward`, z (M, dx + dm) the full state at the
+    end.  Calling this T times with n_steps=1, each from the last z, gives bit for bit the
+    rollout of T steps (same kernels, same plan): the stepping API (mpnode.Simulator) is
+    built on it.  Other arguments as `forward`.
+    """
+    if resolve_backend(backend) == "numpy":
+        from . import numpy_engine
+
+        return numpy_engine.integrate(spec, theta, z0, graph, u, n_steps)
+    z_shape = np.shape(z0)
+    shape = (n_steps + 1, z_shape[0], spec.state_dim)
+    if spec.kind == "node":
+        spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
+    x, _, zend, _, _, _ = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states=False)
+    return x.reshape(shape), zend.reshape(z_shape)
 
 
 def forward_with_vjp(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", keep_states=True):
@@ -339,14 +426,17 @@ def forward_with_vjp(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", k
     state, gx : ndarray, shape (n_steps+1, M, dx), and returns (gtheta like theta,
     gx0 of shape (M, dx)): the gradient of sum(gx * x) with respect to theta and x0.
     vjp may be called several times; it keeps one state per RK4 step alive
-    (``keep_states=False``: no vjp, the rollout alone).
+    (``keep_states=False``: no vjp, the rollout alone).  Compiled kernels only (numba):
+    the NumPy path rolls out but does not train.
     """
+    resolve_backend("numba", purpose="computing gradients (training)")
     from . import kernels
 
     shape = (n_steps + 1,) + np.shape(x0)
     if spec.kind == "node":
         spec, x0, u, graph = _whole_systems(spec, x0, u, graph)
-    x, states, u, plan, h = _run(spec, theta, x0, graph, u, n_steps, driver, keep_states)
+    z0 = initial_state(spec, x0, np.asarray(theta).dtype)
+    x, states, _, u, plan, h = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states)
     x = x.reshape(shape)
     if not keep_states:
         return x, None

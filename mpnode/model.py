@@ -118,13 +118,15 @@ class Model:
                              f"(kind node) was trained on {self.spec.n_nodes}",
                              f"systems of exactly {self.spec.n_nodes} nodes (an mpnode or l2s model runs on any graph)")
 
-    def rollout(self, x0, graph, u=None, steps=None):
+    def rollout(self, x0, graph, u=None, steps=None, backend="auto"):
         """Simulate B trajectories from their initial states (messages start at 0).
 
         x0 : ndarray, shape (B, N, dx) or (N, dx)
         graph : Graph shared by all B trajectories, or a list of B Graphs (each on N nodes)
         u : ndarray, shape (B, T, N, du), or None when the model has no controls
         steps : T (defaults to u's length)
+        backend : "auto" (the compiled kernels; the NumPy path when numba cannot be
+            imported), "numba" or "numpy" (mpnode.numpy_engine: no numba, slower)
         returns x : ndarray, shape (B, T+1, N, dx) (or (T+1, N, dx) for a 2-D x0), in the
         model's dtype and the data's units.
         """
@@ -143,7 +145,8 @@ class Model:
         self.check_nodes(n)
         flat = batch_graph(graph, b)
         un = None if u is None else to_time_major(self.normalize_u(np.asarray(u)))
-        xs = engine.forward(self.spec, self.theta, self.normalize_x(x0).reshape(b * n, dx), flat, un, steps)
+        xs = engine.forward(self.spec, self.theta, self.normalize_x(x0).reshape(b * n, dx), flat, un, steps,
+                            backend=backend)
         x = self.denormalize_x(xs.reshape(steps + 1, b, n, dx).transpose(1, 0, 2, 3)).astype(self.dtype)
         return x[0] if single else x
 

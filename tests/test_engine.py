@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from conftest import DRIVER_ENTRY_POINTS, _spy
-from engine_helpers import (aggregation_matrix, loss_ref, make_graph, mixed_graph, mlp_ref, permute_graph, problem,
-                            random_theta, rel, rollout_ref, spec_, unpack)
-from mpnode import engine, kernels, losses
+from engine_helpers import (loss_ref, make_graph, mixed_graph, params, permute_graph, problem, random_theta, rel,
+                            rollout_ref, spec_)
+from mpnode import engine, kernels, losses, numpy_engine
 from mpnode.engine import FieldSpec
 from mpnode.graph import Graph, block_diagonal
 from mpnode.kernels import mpnode_field
@@ -105,8 +105,8 @@ def test_mlp_vjp_matches_finite_differences():
 
     H1, H2 = np.empty((n, H)), np.empty((n, H))
     K = mpnode_field.mlp_forward(theta, V, H1, H2, dout)
-    np.testing.assert_allclose(K, mlp_ref(theta, V, dout), rtol=1e-12, atol=1e-13)
-    p = unpack(theta, din, H, dout)
+    p = params(spec, theta)
+    np.testing.assert_allclose(K, numpy_engine.mlp(p, V), rtol=1e-12, atol=1e-13)
     np.testing.assert_allclose(H1, np.tanh(V @ p["W1"] + p["b1"]), rtol=1e-13, atol=1e-14)
     gtheta0 = rng.standard_normal(theta.size)
     gtheta = gtheta0.copy()
@@ -115,8 +115,8 @@ def test_mlp_vjp_matches_finite_differences():
     assert rel(GV, fV) < 1e-6
     g = gtheta - gtheta0
     # every parameter block on its own (W1 b1 W2 b2 W3 b3), not only the whole vector
-    for name, blk in unpack(g, din, H, dout).items():
-        assert rel(blk, unpack(ftheta, din, H, dout)[name]) < 1e-6, name
+    for name, blk in params(spec, g).items():
+        assert rel(blk, params(spec, ftheta)[name]) < 1e-6, name
 
 
 # ---------------------------------------------------------------------------
@@ -152,12 +152,20 @@ def test_rollout_matches_reference_small_dims(driver, spec):
 
 
 def test_reference_aggregation_semantics():
-    """The reference itself: mean over the row, 0 for an empty row, +self with self_messages."""
+    """The reference itself: mean over the row, 0 for an empty row, +self with self_messages;
+    sum and scaled (applied to the identity, the aggregation shows its matrix)."""
     g = Graph.from_edges(4, [(0, 1), (0, 2), (2, 1)], directed=True)  # 0 hears 1,2; 2 hears 1; 1, 3 hear nobody
-    A = aggregation_matrix(g, False)
-    np.testing.assert_array_equal(A, [[0, .5, .5, 0], [0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0]])
-    A = aggregation_matrix(g, True)
-    np.testing.assert_allclose(A, [[1 / 3, 1 / 3, 1 / 3, 0], [0, 1, 0, 0], [0, .5, .5, 0], [0, 0, 0, 1]])
+
+    def matrix(**kw):
+        return numpy_engine.aggregator(spec_(**kw), g, np.float64)(np.eye(4))
+
+    np.testing.assert_array_equal(matrix(), [[0, .5, .5, 0], [0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0]])
+    np.testing.assert_allclose(matrix(self_messages=True),
+                               [[1 / 3, 1 / 3, 1 / 3, 0], [0, 1, 0, 0], [0, .5, .5, 0], [0, 0, 0, 1]])
+    np.testing.assert_array_equal(matrix(aggregation="sum"), [[0, 1, 1, 0], [0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0]])
+    np.testing.assert_array_equal(matrix(aggregation="scaled", mean_degree=4.0),
+                                  [[0, .25, .25, 0], [0, 0, 0, 0], [0, .25, 0, 0], [0, 0, 0, 0]])
+    np.testing.assert_array_equal(numpy_engine.empty_rows(spec_(), g), [False, True, False, True])
 
 
 def test_one_big_graph_runs_stagewise_and_matches_reference(monkeypatch):
@@ -268,8 +276,7 @@ def test_gradient_matches_finite_differences(driver, kind, self_messages, zero_m
     # isolated nodes, nodes with a directed edge (in a dense and in the CSR block), nodes
     # next to the tile boundaries (global: 127|128, inside the big graph's block: 27+127|27+128).
     eps = 1e-5
-    din, dout = spec.state_dim + spec.control_dim + spec.message_dim, spec.state_dim + spec.message_dim
-    offsets = np.cumsum([0] + [b.size for b in unpack(gtheta, din, spec.hidden, dout).values()])
+    offsets = np.cumsum([0] + [b.size for b in params(spec, gtheta).values()])
     for lo, hi in zip(offsets[:-1], offsets[1:]):
         if not np.any(gtheta[lo:hi]):
             continue
@@ -435,8 +442,8 @@ def test_zero_messages_gives_exactly_zero_message_gradients(driver):
     theta, x0, u = problem(spec, graph, T, seed=23)
     x = targets_off_the_kink(rollout_ref(spec, theta, x0, graph, u, T), np.random.default_rng(24))
     _, gtheta, _ = losses.value_and_grad(spec, theta, x, graph, u)
-    dx, du, dm, H = spec.state_dim, spec.control_dim, spec.message_dim, spec.hidden
-    g = unpack(gtheta, dx + du + dm, H, dx + dm)
+    dx, du = spec.state_dim, spec.control_dim
+    g = params(spec, gtheta)
     assert np.all(g["W3"][:, dx:] == 0) and np.all(g["b3"][dx:] == 0)
     assert np.all(g["W1"][dx + du:] == 0)  # m' is clamped to 0: its input rows get nothing
     assert np.all(g["W3"][:, :dx] != 0) and np.all(g["b3"][:dx] != 0)

@@ -1,5 +1,5 @@
 """A model file is enough to reproduce mpnode's predictions: a rollout written from the model
-format alone (h5py + the NumPy reference of engine_helpers, no mpnode.Model, no kernels)
+format alone (h5py + the NumPy path mpnode.numpy_engine, no mpnode.Model, no kernels)
 agrees with `mpnode eval --predictions` for every kind."""
 from types import SimpleNamespace
 
@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from engine_helpers import L2S_SHAPES, rollout_ref
+from engine_helpers import rollout_ref
 from mpnode.cli.main import main
 from mpnode.data import read_trajectories
 from mpnode.graph import Graph
 from test_train import tiny_file
 
 MLP_ARRAYS = ("W1", "b1", "W2", "b2", "W3", "b3")
+L2S_ARRAYS = ("W_lift", "b_lift", "W_msg", "b_msg", "psi", "W_upd", "b_upd", "W_out", "b_out")
 
 
 def rollout_from_file(path, traj):
@@ -22,7 +23,7 @@ def rollout_from_file(path, traj):
     with h5py.File(path, "r") as f:
         a = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
         kind = a.get("kind", "mpnode")
-        names = L2S_SHAPES if kind == "l2s" else MLP_ARRAYS
+        names = L2S_ARRAYS if kind == "l2s" else MLP_ARRAYS
         theta = np.concatenate([f[f"params/{n}"][()].astype(np.float64).ravel() for n in names])
         x_mean, x_std = f["norm/x_mean"][()], f["norm/x_std"][()]
     spec = SimpleNamespace(kind=kind, state_dim=int(a["state_dim"]), control_dim=int(a["control_dim"]),

@@ -8,14 +8,10 @@ outgoing message over time, and the test nMSE of both models.
 
     python benchmarks/paper/exp_messages.py [--quick]
 """
-import sys
-
 import numpy as np
 
-from common import HERE, DataSpec, RunSpec, curve, evaluate_nmse, flatness, main, pyplot, run_line, table
-
-sys.path.insert(0, str(HERE.parents[1] / "tests"))
-from engine_helpers import rollout_ref  # noqa: E402  (the float64 NumPy reference MP-NODE of the tests)
+from common import DataSpec, RunSpec, curve, evaluate_nmse, flatness, main, pyplot, run_line, table
+from mpnode import numpy_engine
 
 NAME = "messages"
 TITLE = "1. Messages matter (paper Fig. 2, 3a, 4)"
@@ -54,10 +50,11 @@ def data(mode):
 def message_trace(model, x0, graph, steps):
     """Predicted states and outgoing messages (data units / model units) of one trajectory.
 
-    The engine keeps only x; the float64 NumPy reference of the tests recomputes the
+    The engine keeps only x; the float64 NumPy path (the tests' reference) recomputes the
     messages (and must agree with the engine's x, which is checked).
     """
-    xs, ms = rollout_ref(model.spec, model.theta, model.normalize_x(x0), graph, None, steps, with_messages=True)
+    xs, ms = numpy_engine.rollout(model.spec, model.theta.astype(np.float64), model.normalize_x(x0).astype(np.float64),
+                                  graph, None, steps, with_messages=True)
     x = model.denormalize_x(xs)
     engine = model.rollout(x0, graph, steps=steps)
     scale = np.abs(x).max() + 1.0

@@ -17,8 +17,9 @@ Two drivers per direction, sharing every tile function:
 - *stagewise* drivers: one large connected graph; every phase of a stage is a parallel
   loop over tiles of nodes.
 
-The forward drivers keep the state after every RK4 step when given a ``states`` array
-(T*substeps+1, M, dz); the reverse drivers take the cotangent of every output state,
+The forward drivers start from a full state z0 (M, dz) and return the final one in
+``zend`` (a rollout continues exactly where the last one stopped); they keep the state
+after every RK4 step when given a ``states`` array (T*substeps+1, M, dz); the reverse drivers take the cotangent of every output state,
 GX (T+1, M, dx), recompute each step's stages from the kept state and return the
 parameter cotangent (one buffer per block or tile, reduced by the caller: deterministic,
 no races) and the initial state's.  ``dims`` = (kind, dx, du, dm, H, self_msg, zero_msg);
@@ -244,7 +245,9 @@ def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff,
 
 # ---------------------------------------------------------------------------
 # Block drivers: one thread runs whole blocks through all steps.
-# X0 (M, dx), U (T, M, du); out (T+1, M, dx); states (T*substeps+1, M, dz) or empty.
+# Z0 (M, dz) the full initial state, U (T, M, du); out (T+1, M, dx); states
+# (T*substeps+1, M, dz) or empty; zend (M, dz) receives the full final state, so that a
+# later call can continue bit for bit where this one stopped (mpnode.Simulator).
 # Block b is made of copies of one dense_n[b]-node graph whose adjacency is the row-major
 # (N, N) matrix at dense_A[dense_off[b]:] (dense_n[b] = 0: use the CSR rows).
 # ---------------------------------------------------------------------------
@@ -256,19 +259,20 @@ def _block_work(dims, n, like):
 
 
 @njit(parallel=True, **JIT)
-def rollout_blocks(theta, dims, x0, U, graph, block_ptr, dense_n, dense_off, dense_A, substeps, h, out, states):
-    """Forward rollout from x0 (messages start at 0): x at every output step into ``out``."""
+def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, dense_A, substeps, h, out, states,
+                   zend):
+    """Forward rollout from the full state z0: x at every output step into ``out``, the final z into zend."""
     dx = dims[1]
     T = out.shape[0] - 1
     keep = states.shape[0] > 0
     for b in prange(len(block_ptr) - 1):
         lo = block_ptr[b]
         hi = block_ptr[b + 1]
-        z, za, zb, acc, C = _block_work(dims, hi - lo, x0)
+        z, za, zb, acc, C = _block_work(dims, hi - lo, z0)
         A = dense_block(dense_A, dense_n[b], dense_off[b])
-        sums = np.empty((hi - lo, sent_width(dims)), x0.dtype)
-        z[:, :dx] = x0[lo:hi]
-        out[0, lo:hi] = x0[lo:hi]
+        sums = np.empty((hi - lo, sent_width(dims)), z0.dtype)
+        z[:] = z0[lo:hi]
+        out[0, lo:hi] = z0[lo:hi, :dx]
         if keep:
             states[0, lo:hi] = z
         for t in range(T):
@@ -277,6 +281,7 @@ def rollout_blocks(theta, dims, x0, U, graph, block_ptr, dense_n, dense_off, den
                 if keep:
                     states[t * substeps + s + 1, lo:hi] = z
             out[t + 1, lo:hi] = z[:, :dx]
+        zend[lo:hi] = z
 
 
 @njit(parallel=True, **JIT)
@@ -313,21 +318,21 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
 # Stagewise drivers: one large graph, every phase a parallel loop over tiles.
 # ---------------------------------------------------------------------------
 @njit(parallel=True, **JIT)
-def rollout_stagewise(theta, dims, x0, U, graph, substeps, h, out, states):
-    """Forward rollout of one large graph.  Work arrays are per tile; only what L2S nodes send
-    (h0, s) is kept for the whole graph, so memory stays ~ M * (dz + 2 H) beside ``states``."""
-    M, dx = x0.shape
-    kind, du, H = dims[0], dims[2], dims[4]
+def rollout_stagewise(theta, dims, z0, U, graph, substeps, h, out, states, zend):
+    """Forward rollout of one large graph (arguments as rollout_blocks).  Work arrays are per
+    tile; only what L2S nodes send (h0, s) is kept for the whole graph, so memory stays
+    ~ M * (dz + 2 H) beside ``states``."""
+    M = z0.shape[0]
+    kind, dx, du, H = dims[0], dims[1], dims[2], dims[4]
     T = out.shape[0] - 1
     keep = states.shape[0] > 0
     ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
-    z = np.zeros((M, state_width(dims)), x0.dtype)
-    z[:, :dx] = x0
+    z = z0.copy()
     za, zb, acc = np.empty_like(z), np.empty_like(z), np.empty_like(z)
-    H0 = np.empty((M if kind == L2S else 0, H), x0.dtype)
+    H0 = np.empty((M if kind == L2S else 0, H), z0.dtype)
     S = np.empty_like(H0)
-    none = np.empty((0, 0), x0.dtype)
-    out[0] = x0
+    none = np.empty((0, 0), z0.dtype)
+    out[0] = z0[:, :dx]
     if keep:
         states[0] = z
     for t in range(T):
@@ -338,12 +343,12 @@ def rollout_stagewise(theta, dims, x0, U, graph, substeps, h, out, states):
                     for k in prange(ntiles):
                         i0 = k * STAGE_TILE
                         i1 = min(M, i0 + STAGE_TILE)
-                        V = np.empty((i1 - i0, dx + du), x0.dtype)
+                        V = np.empty((i1 - i0, dx + du), z0.dtype)
                         l2s_field.send_tile(theta, dims, zin, U[t], i0, i1, 0, V, H0[i0:i1], S[i0:i1])
                 for k in prange(ntiles):
                     i0 = k * STAGE_TILE
                     i1 = min(M, i0 + STAGE_TILE)
-                    C = caches(dims, 1, i1 - i0, x0)
+                    C = caches(dims, 1, i1 - i0, z0)
                     if kind == L2S:
                         K = l2s_field.update_tile(theta, dims, S, none, graph, i0, i1, 0, H0[i0:i1], C[3][0], C[4][0])
                     else:
@@ -353,6 +358,7 @@ def rollout_stagewise(theta, dims, x0, U, graph, substeps, h, out, states):
             if keep:
                 states[t * substeps + s + 1] = z
         out[t + 1] = z[:, :dx]
+    zend[:] = z
 
 
 @njit(parallel=True, **JIT)
