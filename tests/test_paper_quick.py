@@ -26,7 +26,8 @@ def test_results_has_every_section_and_figure(quick_run):
     text = (quick_run / "RESULTS.md").read_text()
     for title in ("1. Messages matter", "2. Zero-shot to unseen topologies", "3. Zero-shot to more nodes",
                   "4. Fine-tuning", "5. Message size", "6. Speed against error", "7. Aggregation",
-                  "8. Learning-rate schedule", "9. Quadrotor swarm"):
+                  "8. Learning-rate schedule", "9. Quadrotor swarm",
+                  "10. Messages against a monolithic neural ODE"):
         assert f"## {title}" in text
     for fig in ("messages_loss", "messages_trajectories", "messages_norms", "finetune_curves", "message_size",
                 "speed_vs_error", "schedule_val_loss"):
@@ -49,6 +50,11 @@ def test_aggregation_runs_use_the_recipes_aggregations(quick_run):
         "gene16_paper_mean": "mean", "gene16_scaled": "scaled", "gene16_default": "scaled", "gene16_l2s": "sum"}
     assert all(v["nmse"] > 0 for case in ("gene16_default", "gene16_l2s") for k, v in numbers[case].items()
                if isinstance(v, dict))
+
+
+def test_a_plain_node_refuses_a_graph_of_another_size(quick_run):
+    numbers = json.loads((quick_run / "results" / "node.json").read_text())
+    assert "13" in numbers["refusal"] and "10" in numbers["refusal"]  # kuramoto10's NODE asked for 13 nodes
 
 
 def test_finetune_curves_and_determinism(quick_run):
