@@ -6,7 +6,7 @@ from dataclasses import replace
 import click
 
 
-from .main import main
+from .main import main, scheduler_option
 
 
 @main.command("generate")
@@ -21,8 +21,10 @@ from .main import main
               help="Seed of the initial states (trajectory b uses SeedSequence(seed, spawn_key=(b,))); "
                    "drawn parameters (lorenz H, kuramoto omega) keep the scene's system_seed.")
 @click.option("--workers", type=click.IntRange(min=1), default=2, show_default=True,
-              help="Processes integrating trajectories; the data do not depend on it.")
-def generate(scene, output, trajectories, horizon, dt, seed, workers):
+              help="Processes integrating trajectories (local pool, or --scheduler local); the data do not depend "
+                   "on it.")
+@scheduler_option
+def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler):
     """Integrate the reference system of SCENE and write the trajectories to FILE.
 
     SCENE is a built-in name (list them with `mpnode scenes`) or a path to a
@@ -34,6 +36,9 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers):
 
     Exit status: 0 written; 2 bad scene, option or output path; 3 trajectories
     kept failing (nothing written).
+
+    With --scheduler the trajectories are integrated on Dask in chunks; the arrays come
+    back here and only this process writes FILE: the file is the same, bit for bit.
     """
     from mpnode.atomic import check_outputs
     from mpnode.data import write_trajectories
@@ -45,7 +50,7 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers):
     s = replace(s, **{k: v for k, v in overrides.items() if v is not None})
     start = time.perf_counter()
     with click.progressbar(length=s.trajectories, label=s.name, file=sys.stderr) as bar:
-        traj = run(s, workers=workers, progress=bar.update)
+        traj = run(s, workers=workers, progress=bar.update, scheduler=scheduler)
     write_trajectories(output, traj)
     click.echo(f"wrote {output}: {s.name}, B={traj.n_trajectories}, T={traj.horizon}, N={traj.n_nodes}, "
                f"dx={traj.state_dim}, {len(traj.graphs)} graph(s), {traj.attrs['redrawn']} re-drawn, "

@@ -32,6 +32,15 @@ def main():
     """
 
 
+def scheduler_option(f):
+    """--scheduler (default: $MPNODE_SCHEDULER): where independent tasks run (mpnode.executors)."""
+    return click.option(
+        "--scheduler", envvar="MPNODE_SCHEDULER", show_envvar=True, metavar="none|local|ADDRESS|FILE",
+        help="Run the tasks on Dask (pip install 'mpnode[dist]'): local (a cluster of --workers processes on this "
+             "machine), the address of a running scheduler (tcp://host:8786) or its scheduler file.  "
+             "Default: a local process pool.")(f)
+
+
 # Each command module adds its commands to `main` on import.
 from . import inspect_cmd  # noqa: E402,F401
 from . import generate_cmd  # noqa: E402,F401

@@ -20,7 +20,6 @@ renormalises every quaternion at the step and continues from the saved state, so
 under ``u[b, k]``: the file's controls reproduce its trajectories.
 """
 import math
-from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
 from scipy.integrate import solve_ivp
@@ -33,6 +32,7 @@ except ImportError:  # without numba the RHS runs as plain Python (same results,
 
 from mpnode.data import Trajectories
 from mpnode.errors import InputError, NumericalError
+from mpnode.executors import chunk_ranges, map_chunks, open_executor
 
 SYSTEM = "quadrotor_load"
 STATE_DIM = 13
@@ -538,7 +538,7 @@ def make_rhs(p, graph):
     return Physics(p).rhs
 
 
-def generate(scene, *, workers=2, max_tries=10, progress=None):
+def generate(scene, *, workers=2, max_tries=10, progress=None, scheduler=None):
     """The trajectories of a quadrotor_load scene (Trajectories with u and aux/load).
 
     Trajectory b draws everything (start, goal, gain factors, thrust noise) from
@@ -556,8 +556,6 @@ def generate(scene, *, workers=2, max_tries=10, progress=None):
     arrays = draw_params(physics_params, n, None)
     job = dict(n=n, T=T, dt=scene.dt, params={**physics_params, **arrays}, method=scene.integrator,
                rtol=scene.rtol, atol=scene.atol, seed=scene.seed, max_tries=max_tries)
-    size = max(1, min(10, math.ceil(B / (4 * workers))))
-    chunks = [range(i, min(i + size, B)) for i in range(0, B, size)]
     out = dict(x=np.empty((B, T + 1, n, STATE_DIM)), u=np.empty((B, T, n, CONTROL_DIM)),
                load=np.empty((B, T + 1, LOAD_DIM)), start=np.empty((B, 3)), goal=np.empty((B, 3)),
                gain_scale=np.empty((B, 4)), evaluations=np.empty(B, np.int64), redraws=np.empty(B, np.int64),
@@ -570,18 +568,11 @@ def generate(scene, *, workers=2, max_tries=10, progress=None):
         if progress is not None:
             progress(len(chunk))
 
-    if workers == 1:
-        for chunk in chunks:
-            keep(chunk, _run(job, chunk))
+    if workers == 1 and scheduler is None:
+        map_chunks(None, _run, job, chunk_ranges(B, 1, 10), keep)
     else:
-        with ProcessPoolExecutor(workers) as pool:
-            futures = {pool.submit(_run, job, c): c for c in chunks}
-            try:
-                for fut in as_completed(futures):
-                    keep(futures[fut], fut.result())
-            except BaseException:
-                pool.shutdown(cancel_futures=True)
-                raise
+        with open_executor(scheduler, workers) as farm:
+            map_chunks(farm, _run, job, chunk_ranges(B, farm.workers, 10), keep)
     probe = Controller(n, None, Physics(job["params"]), CONTROL, scene.dt)
     attrs = dict(physics_params, seed=scene.seed, system_seed=scene.system_seed, integrator=scene.integrator,
                  rtol=scene.rtol, atol=scene.atol, scene=scene.name, description=scene.description,

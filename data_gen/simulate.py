@@ -27,14 +27,14 @@ trajectories needed it) and ``aux/integrator_fallback`` [B] (1 where trajectory 
 integrated with the fallback), so every trajectory can be re-integrated with its own method.
 Implicit scene integrators (Radau, BDF, LSODA) run as they are, without budget.
 """
-import math
-from concurrent.futures import ProcessPoolExecutor, as_completed
+import secrets
 
 import numpy as np
 from scipy.integrate import solve_ivp
 
 from mpnode.data import Trajectories
 from mpnode.errors import NumericalError
+from mpnode.executors import chunk_ranges, map_chunks, open_executor
 
 from .initial import get_sampler
 from .scenes import check_scene
@@ -52,9 +52,11 @@ class StiffnessDetected(NumericalError):
     """An explicit integration gave up or exceeded its evaluation budget (see the module docstring)."""
 
 
-def generate(scene, *, workers=2, max_tries=10, progress=None):
+def generate(scene, *, workers=2, max_tries=10, progress=None, scheduler=None):
     """The trajectories of ``scene``, with all it takes to re-integrate them (Trajectories).
 
+    scheduler : where the trajectories are integrated (mpnode.executors: None, the local pool of
+    ``workers`` processes; "local", an address or a scheduler file: Dask); the data do not depend on it.
     Root attributes: the system's scalar parameters (spec names), state_names, seed, system_seed,
     integrator, rtol, atol, scene, description, initial, redrawn, and what graphs were built;
     `params/`: the drawn arrays (lorenz H, kuramoto omega).  The graph of trajectory b is
@@ -66,7 +68,7 @@ def generate(scene, *, workers=2, max_tries=10, progress=None):
     for g in graphs:
         system.check_graph(g, scene.name, "graph")
     if system.generator is not None:  # closed loop (quadrotor_load): its own driver, controls and aux data
-        return system.generator(scene, workers=workers, max_tries=max_tries, progress=progress)
+        return system.generator(scene, workers=workers, max_tries=max_tries, progress=progress, scheduler=scheduler)
     n_nodes, B = scene.graph.n_nodes, scene.trajectories
     scalars = {**system.defaults, **scene.params}
     drawn = system.draw(scalars, n_nodes, np.random.default_rng(scene.system_seed))
@@ -75,7 +77,7 @@ def generate(scene, *, workers=2, max_tries=10, progress=None):
     x, redraws, fallback = simulate(system.name, {**scalars, **drawn}, graphs, graph_index, sampler,
                                     scene.horizon, scene.dt, scene.seed, method=scene.integrator, rtol=scene.rtol,
                                     atol=scene.atol, max_tries=max_tries, workers=workers, progress=progress,
-                                    return_fallback=True)
+                                    return_fallback=True, scheduler=scheduler)
     attrs = dict(scalars, seed=scene.seed, system_seed=scene.system_seed, integrator=scene.integrator,
                  rtol=scene.rtol, atol=scene.atol, scene=scene.name, description=scene.description,
                  initial=scene.initial, max_tries=max_tries, redrawn=int(redraws.sum()),
@@ -176,7 +178,7 @@ def _terminal(guard):
 
 def simulate(system, params, graphs, graph_index, sampler, n_steps, dt, seed, *,
              method="DOP853", rtol=1e-9, atol=1e-9, max_tries=10, workers=2, progress=None,
-             fallback=FALLBACK_METHOD, return_fallback=False):
+             fallback=FALLBACK_METHOD, return_fallback=False, scheduler=None):
     """Integrate B = len(graph_index) trajectories of ``system``.
 
     params : scalar and drawn array parameters (see systems.make_rhs)
@@ -184,58 +186,53 @@ def simulate(system, params, graphs, graph_index, sampler, n_steps, dt, seed, *,
     sampler : sampler(rng, system, n_nodes) -> x0 of shape (N, dx), picklable (initial.py)
     progress : called with the number of trajectories just finished, or None
     fallback : the implicit method of the stiffness switch (module docstring), None to switch it off
+    workers, scheduler : see mpnode.executors.open_executor (workers=1 without a scheduler: in this process)
     Returns (x, redraws): x shape (B, n_steps+1, N, dx) float64, redraws shape (B,) int;
     with ``return_fallback`` also used_fallback, shape (B,) bool (True: integrated with ``fallback``).
     Raises NumericalError when a trajectory still fails after ``max_tries`` initial states.
     """
     job = dict(system=system, params=params, graphs=graphs, graph_index=np.asarray(graph_index),
                sampler=sampler, n_steps=n_steps, dt=dt, seed=seed, method=method, rtol=rtol,
-               atol=atol, max_tries=max_tries, fallback=fallback)
+               atol=atol, max_tries=max_tries, fallback=fallback, token=secrets.token_hex(8))
     B = len(graph_index)
-    size = max(1, min(25, math.ceil(B / (4 * workers))))
-    chunks = [range(i, min(i + size, B)) for i in range(0, B, size)]
     x = np.empty((B, n_steps + 1, graphs[0].n_nodes, get_system(system).state_dim))
     redraws = np.zeros(B, dtype=np.int64)
     used_fallback = np.zeros(B, dtype=bool)
 
-    def keep(chunk, xs, rs, fs):
-        x[chunk.start:chunk.stop], redraws[chunk.start:chunk.stop] = xs, rs
-        used_fallback[chunk.start:chunk.stop] = fs
+    def keep(chunk, result):
+        x[chunk.start:chunk.stop], redraws[chunk.start:chunk.stop], used_fallback[chunk.start:chunk.stop] = result
         if progress is not None:
             progress(len(chunk))
 
-    if workers == 1:
-        _init(job)
+    if workers == 1 and scheduler is None:
         try:
-            for chunk in chunks:
-                keep(chunk, *_run(chunk))
+            map_chunks(None, _run_job, job, chunk_ranges(B, 1, 25), keep)
         finally:
-            _JOB.clear()
+            _PREPARED.clear()
     else:
-        with ProcessPoolExecutor(workers, initializer=_init, initargs=(job,)) as pool:
-            futures = {pool.submit(_run, c): c for c in chunks}
-            try:
-                for fut in as_completed(futures):
-                    keep(futures[fut], *fut.result())
-            except BaseException:
-                pool.shutdown(cancel_futures=True)
-                raise
+        with open_executor(scheduler, workers) as farm:
+            map_chunks(farm, _run_job, job, chunk_ranges(B, farm.workers, 25), keep)
     return (x, redraws, used_fallback) if return_fallback else (x, redraws)
 
 
-# ---- worker side: the job is set up once per process, then chunks of indices run ----
-_JOB = {}
+# ---- worker side: a process prepares a job once (its right-hand sides), then runs chunks of it ----
+_PREPARED = {}
 
 
-def _init(job):
-    system = get_system(job["system"])
-    _JOB.clear()
-    _JOB.update(job, sys=system, rhs=[system.rhs(job["params"], g) for g in job["graphs"]])
+def _run_job(job, chunk):
+    """Trajectories ``chunk`` of ``job``, preparing the job in this process the first time."""
+    prepared = _PREPARED.get(job["token"])
+    if prepared is None:
+        system = get_system(job["system"])
+        prepared = dict(job, sys=system, rhs=[system.rhs(job["params"], g) for g in job["graphs"]])
+        _PREPARED.clear()  # one job at a time per process: the last one's RHS are dropped
+        _PREPARED[job["token"]] = prepared
+    return _run(prepared, chunk)
 
 
-def _run(chunk):
-    """Trajectories ``chunk`` (a range of b): x (len, T+1, N, dx), redraws (len,), used_fallback (len,)."""
-    j = _JOB
+def _run(j, chunk):
+    """Trajectories ``chunk`` (a range of b) of the prepared job ``j``:
+    x (len, T+1, N, dx), redraws (len,), used_fallback (len,)."""
     xs, rs, fs = [], [], []
     for b in chunk:
         rng = np.random.default_rng(np.random.SeedSequence(j["seed"], spawn_key=(b,)))
