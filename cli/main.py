@@ -47,3 +47,4 @@ from . import generate_cmd  # noqa: E402,F401
 from . import train_cmd  # noqa: E402,F401
 from . import eval_cmd  # noqa: E402,F401
 from . import convert_cmd  # noqa: E402,F401
+from . import sweep_cmd  # noqa: E402,F401

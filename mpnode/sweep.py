@@ -1,0 +1,479 @@
+"""A sweep: many training runs from one TOML file, run as independent tasks (docs/sweep-format.md).
+
+    data = ["train.h5"]      # training files; every run trains on all of them
+    [train]                  # settings shared by every run: any `mpnode train` option, with underscores
+    epochs = 300
+    [grid]                   # every combination is one run
+    message_dim = [1, 3, 7]
+    seed = [0, 1]
+
+Each run is one task (`run_task`) on an mpnode.executors Farm (a local process pool or
+Dask): it receives the data files' bytes (no shared filesystem is assumed), trains with the
+library function behind `mpnode train` / `finetune` (mpnode.runs) in a temporary folder,
+evaluates the best model, and returns the model file, its log and the evaluation.  The
+client (`run_sweep`) writes them under OUT/runs/NAME/ and rewrites OUT/summary.csv and
+OUT/summary.md as each run finishes; a run whose result is on disk with the same settings
+and data is not redone, so an interrupted sweep continues where it stopped.  A run that
+raises is reported in the summary (and redone next time) while the others go on; a
+fine-tune child starts when its parent has finished.
+"""
+import csv
+import dataclasses
+import hashlib
+import io
+import itertools
+import json
+import math
+import os
+import tempfile
+import time
+import tomllib
+from concurrent.futures import FIRST_COMPLETED, wait
+from concurrent.futures.process import BrokenProcessPool
+
+from .atomic import atomic_path
+from .errors import InputError
+from .runs import MODEL_OPTIONS, parse_duration, split_options
+
+#: what a sweep file may hold at its top level
+TOP_KEYS = ("data", "test", "recipe", "train", "grid", "run")
+#: `mpnode train` flags whose library option has another name
+ALIASES = {"model": "kind", "aggregate": "aggregation", "horizon_curriculum": "curriculum"}
+#: keys of a [[run]] table that are not training options
+RUN_KEYS = ("name", "from", "data", "refit_norm", "recipe")
+#: times a run is resubmitted after the process running it died (Dask reschedules on its own)
+LOST_RETRIES = 2
+#: statuses of a finished training (fit's), as opposed to "failed" (the task raised) and "pending"
+FINISHED = ("completed", "time_limit", "diverged")
+
+
+@dataclasses.dataclass
+class RunPlan:
+    """One run: ``options`` are mpnode.runs options; ``parent`` the run it fine-tunes (or None)."""
+
+    name: str
+    options: dict
+    data: list
+    recipe: str = "auto"
+    parent: str = None
+    refit_norm: bool = False
+    settings: str = ""  # what sets this run apart, for the summary
+    key: str = ""  # digest of everything that decides the run (settings, data contents, parent's key)
+
+
+@dataclasses.dataclass
+class Sweep:
+    path: str
+    runs: list  # RunPlan, parents before children
+    test: list  # test files every run is evaluated on
+
+
+# ---------------------------------------------------------------------------
+# Reading the file
+# ---------------------------------------------------------------------------
+def read_sweep(path):
+    """The Sweep of TOML file ``path``; InputError naming the key for anything that cannot run."""
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as f:
+            doc = tomllib.load(f)
+    except FileNotFoundError:
+        raise InputError(path, "file", "does not exist", "a sweep file (docs/sweep-format.md)") from None
+    except (OSError, tomllib.TOMLDecodeError) as e:
+        raise InputError(path, "file", f"cannot be read as TOML: {e}", "a sweep file (docs/sweep-format.md)") from None
+    for key in doc:
+        if key not in TOP_KEYS:
+            raise InputError(path, key, "is not a sweep key", "one of " + ", ".join(TOP_KEYS))
+    folder = os.path.dirname(os.path.abspath(path))
+    data = _files(doc, "data", path, folder, required=True)
+    test = _files(doc, "test", path, folder, required=False)
+    shared = _table(doc, "train", path)
+    recipe = _text(doc.get("recipe", shared.pop("recipe", "auto")), path, "recipe")
+    plans = _grid_runs(doc, shared, data, recipe, path) + _listed_runs(doc, shared, data, recipe, path, folder)
+    plans = _order(plans, path)
+    digests = {f: file_digest(f) for p in plans for f in p.data} | {f: file_digest(f) for f in test}
+    keys = {}
+    for p in plans:
+        p.key = _digest({"options": p.options, "recipe": p.recipe, "refit_norm": p.refit_norm,
+                         "data": [digests[f] for f in p.data], "test": [digests[f] for f in test],
+                         "parent": keys.get(p.parent)})
+        keys[p.name] = p.key
+    return Sweep(path, plans, test)
+
+
+def _files(doc, key, path, folder, required):
+    value = doc.get(key)
+    if value is None and not required:
+        return []
+    if isinstance(value, str):
+        value = [value]
+    if not value or not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise InputError(path, key, f"is {value!r}", "a list of trajectory files, e.g. [\"train.h5\"]")
+    out = []
+    for v in value:
+        p = os.path.normpath(os.path.join(folder, os.path.expanduser(v)))
+        if not os.path.isfile(p):
+            raise InputError(path, key, f"{v!r} does not exist (looked for {p})",
+                             "trajectory files, relative to the sweep file's folder")
+        out.append(p)
+    return out
+
+
+def _table(doc, key, path):
+    value = doc.get(key, {})
+    if not isinstance(value, dict):
+        raise InputError(path, key, f"is {value!r}", f"a table [{key}]")
+    return {ALIASES.get(k, k): v for k, v in value.items()}
+
+
+def _text(value, path, field):
+    if not isinstance(value, str):
+        raise InputError(path, field, f"is {value!r}", "a string")
+    return value
+
+
+def _grid_runs(doc, shared, data, recipe, path):
+    grid = _table(doc, "grid", path)
+    if not grid and doc.get("run"):
+        return []
+    for k, values in grid.items():
+        if not isinstance(values, list) or not values:
+            raise InputError(path, f"grid.{k}", f"is {values!r}", "a non-empty list of values, one per run")
+    plans = []
+    for combo in itertools.product(*grid.values()):
+        own = dict(zip(grid, combo))
+        name = ",".join(f"{k}={_label(v)}" for k, v in own.items()) or "run"
+        options = {**shared, **own}
+        run_recipe = _text(options.pop("recipe", recipe), path, f"grid.recipe ({name})")
+        plans.append(RunPlan(name, _options(options, path, f"grid ({name})"), data, run_recipe,
+                             settings=_describe(own)))
+    return plans
+
+
+def _listed_runs(doc, shared, data, recipe, path, folder):
+    runs = doc.get("run", [])
+    if not isinstance(runs, list) or not all(isinstance(r, dict) for r in runs):
+        raise InputError(path, "run", f"is {runs!r}", "[[run]] tables")
+    plans = []
+    for i, table in enumerate(runs):
+        where = f"run[{i}]"
+        table = {ALIASES.get(k, k): v for k, v in table.items()}
+        name = table.pop("name", None)
+        if not isinstance(name, str) or not name or "/" in name or name.startswith("."):
+            raise InputError(path, f"{where}.name", f"is {name!r}", "a name for the run's folder (no '/')")
+        parent = table.pop("from", None)
+        files = _files(table, "data", path, folder, required=False) or data
+        table.pop("data", None)
+        refit = bool(table.pop("refit_norm", False))
+        run_recipe = _text(table.pop("recipe", recipe), path, f"{where}.recipe")
+        base = shared if parent is None else {k: v for k, v in shared.items() if k not in MODEL_OPTIONS}
+        options = _options({**base, **table}, path, f"{where} ({name})", finetune=parent is not None)
+        settings = _describe(table) + (f" from {parent}" if parent else "")
+        plans.append(RunPlan(name, options, files, run_recipe, parent, refit, settings.strip()))
+    return plans
+
+
+def _options(options, path, where, finetune=False):
+    """The options checked now (so a typo fails before any run starts), in mpnode.runs' form."""
+    options = dict(options)
+    if "time_limit" in options:
+        options["time_limit"] = parse_duration(options["time_limit"], f"{path}: {where}.time_limit")
+    if isinstance(options.get("curriculum"), str):
+        windows = [w.strip() for w in options["curriculum"].split(",") if w.strip() and w.strip() != "full"]
+        options["curriculum"] = windows
+    if isinstance(options.get("curriculum"), list):
+        options["curriculum"] = tuple(options["curriculum"])
+    if options.pop("clip_global", False):
+        options["clip_mode"] = "global"
+    if finetune:
+        fixed = sorted(k for k in options if k in MODEL_OPTIONS and k != "substeps")
+        if fixed:
+            raise InputError(path, f"{where}.{fixed[0]}", "cannot change when fine-tuning",
+                             "only training options (and substeps); the model keeps its kind and sizes")
+    try:
+        split_options(options, f"{path}: {where}")
+    except TypeError as e:
+        raise InputError(path, where, f"an option has a value of the wrong type ({e})",
+                         "the types `mpnode train --help` shows") from None
+    return options
+
+
+def _order(plans, path):
+    """Parents before their children; InputError for a duplicate name, an unknown parent or a cycle."""
+    by_name = {}
+    for p in plans:
+        if p.name in by_name:
+            raise InputError(path, "run", f"two runs are named {p.name!r}", "distinct names")
+        by_name[p.name] = p
+    ordered, placed = [], set()
+    while len(ordered) < len(plans):
+        ready = [p for p in plans if p.name not in placed and (p.parent is None or p.parent in placed)]
+        if not ready:
+            stuck = next(p for p in plans if p.name not in placed)
+            what = "is not a run of this sweep" if stuck.parent not in by_name else "starts a cycle"
+            raise InputError(path, f"run {stuck.name}.from", f"{stuck.parent!r} {what}", "the name of another run")
+        ordered += ready
+        placed |= {p.name for p in ready}
+    return ordered
+
+
+def _label(v):
+    text = ",".join(map(str, v)) if isinstance(v, list) else str(v)
+    return text.replace("/", "-").replace(",", "-").replace(" ", "")
+
+
+def _describe(own):
+    return " ".join(f"{k}={_label(v)}" for k, v in own.items())
+
+
+def _digest(obj):
+    return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def file_digest(path):
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+# ---------------------------------------------------------------------------
+# The task (runs on a worker)
+# ---------------------------------------------------------------------------
+def run_task(plan, test_names, parent, *files):
+    """Train ``plan`` (a RunPlan as a dict) and evaluate it; runs wherever the farm puts it.
+
+    parent : the parent's model file (bytes, or a path on this machine) or None;
+    files : the plan's data files then the test files, each bytes or a local path.
+    Returns {"model": bytes, "log": bytes, "result": dict} (result: see `_result`).
+    """
+    from . import runs
+    from .data import read_trajectories
+    from .evaluate import evaluate
+    from .train_log import log_path
+
+    with tempfile.TemporaryDirectory(prefix="mpnode-sweep-") as tmp:
+        local = [_local(f, os.path.join(tmp, f"data{i}.h5")) for i, f in enumerate(files)]
+        n_data = len(local) - len(test_names)
+        paths, tests = local[:n_data], local[n_data:]
+        datasets = runs.read_all(paths)
+        output = os.path.join(tmp, "model.h5")
+        start = time.perf_counter()
+        if plan["parent"] is None:
+            result = runs.train(paths, output, plan["options"], recipe_name=plan["recipe"], datasets=datasets)
+        else:
+            model = _local(parent, os.path.join(tmp, "parent.h5"))
+            result = runs.finetune(model, paths, output, plan["options"], refit_norm=plan["refit_norm"],
+                                   datasets=datasets)
+        seconds = time.perf_counter() - start
+        val = runs.validation_errors(result, datasets, plan["data"])
+        test = [(name, evaluate(result.model, read_trajectories(p), source=name, check_stability=False))
+                for name, p in zip(test_names, tests)]
+        with open(output, "rb") as f:
+            model_bytes = f.read()
+        with open(log_path(output), "rb") as f:
+            log_bytes = f.read()
+    return {"model": model_bytes, "log": log_bytes, "result": _result(plan, result, seconds, val, test)}
+
+
+def _local(ref, path):
+    """A path on this machine holding ``ref`` (bytes are written to ``path``)."""
+    if isinstance(ref, (bytes, bytearray)):
+        with open(path, "wb") as f:
+            f.write(ref)
+        return path
+    return ref
+
+
+def _mean(pairs):
+    """Trajectory-weighted mean of (count, value) pairs (None when there are none)."""
+    total = sum(n for n, _ in pairs)
+    return sum(n * v for n, v in pairs) / total if total else None
+
+
+def _result(plan, result, seconds, val, test):
+    return {"name": plan["name"], "key": plan["key"], "status": result.status, "message": result.message,
+            "epochs": result.epoch, "best_epoch": result.best_epoch, "best_val_loss": result.best_val_loss,
+            "seconds": seconds, "val_nmse": _mean([(n, v) for _, n, v, _ in val]),
+            "val": [{"file": s, "trajectories": n, "nmse": v, "nmse_last": last} for s, n, v, last in val],
+            "test_nmse": _mean([(r.n_trajectories, r.nmse) for _, r in test]),
+            "test_nmse_last": _mean([(r.n_trajectories, r.nmse_last) for _, r in test]),
+            "test": [{"file": name, "trajectories": r.n_trajectories, "nmse": r.nmse, "nmse_last": r.nmse_last,
+                      "blown_up": r.n_bad} for name, r in test],
+            "options": {k: v for k, v in plan["options"].items()}, "recipe": plan["recipe"],
+            "from": plan["parent"], "data": plan["data"]}
+
+
+# ---------------------------------------------------------------------------
+# The client: submit, collect, write
+# ---------------------------------------------------------------------------
+def run_dir(out, name):
+    return os.path.join(out, "runs", name)
+
+
+def load_finished(out, plan):
+    """The result of ``plan`` on disk (dict) if it finished with the same key, else None."""
+    try:
+        with open(os.path.join(run_dir(out, plan.name), "result.json")) as f:
+            res = json.load(f)
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+    ok = res.get("key") == plan.key and res.get("status") in FINISHED
+    return res if ok and os.path.exists(os.path.join(run_dir(out, plan.name), "model.h5")) else None
+
+
+def run_sweep(sweep, out, farm, progress=None):
+    """Run every unfinished run of ``sweep`` on ``farm``; write OUT/runs/NAME/ and the summary.
+
+    progress : called with each run's record (dict with name, status, ...) as it finishes,
+    or None.  Returns {name: record} for every run (status "failed" with an "error" when its
+    task raised; "skipped" when its parent failed).  Ctrl-C: cancels what is running; what
+    finished is on disk.
+    """
+    os.makedirs(os.path.join(out, "runs"), exist_ok=True)
+    records = {p.name: load_finished(out, p) or {"name": p.name, "status": "pending"} for p in sweep.runs}
+    todo = {p.name: p for p in sweep.runs if records[p.name]["status"] == "pending"}
+    write_summary(out, sweep, records)
+    tests = [os.path.relpath(t, os.path.dirname(os.path.abspath(sweep.path))) for t in sweep.test]
+    shared = {}
+
+    def ref(path):  # what a task gets for a file: a path in the pool, the bytes (sent once) on Dask
+        if not farm.is_dask:
+            return path
+        if path not in shared:
+            with open(path, "rb") as f:
+                shared[path] = farm.share(f.read())
+        return shared[path]
+
+    def submit(p):
+        parent = None
+        if p.parent is not None:
+            parent = os.path.join(run_dir(out, p.parent), "model.h5")
+            if farm.is_dask:
+                with open(parent, "rb") as f:
+                    parent = f.read()
+        plan = dataclasses.asdict(p)
+        return farm.submit(run_task, plan, tests, parent, *[ref(f) for f in p.data + sweep.test])
+
+    running, lost = {}, {}
+    try:
+        while todo or running:
+            for name in [n for n, p in todo.items() if p.parent is None or records[p.parent]["status"] in FINISHED]:
+                running[submit(todo.pop(name))] = name
+            waiting = set(todo) | set(running.values())
+            for name in [n for n, p in todo.items() if p.parent not in waiting]:  # its parent will not finish
+                records[name] = _failed(name, f"not run: its parent {todo.pop(name).parent} did not finish", "skipped")
+                _announce(out, sweep, records, name, progress)
+            if not running:
+                continue
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                name = running.pop(fut)
+                try:
+                    records[name] = _keep(out, fut.result())
+                except BrokenProcessPool:  # a pool process died: every running task is lost with it
+                    for lost_name in [name, *running.values()]:
+                        lost[lost_name] = lost.get(lost_name, 0) + 1
+                        todo[lost_name] = next(p for p in sweep.runs if p.name == lost_name)
+                    running.clear()
+                    for lost_name in [n for n in list(todo) if lost.get(n, 0) > LOST_RETRIES]:
+                        del todo[lost_name]
+                        records[lost_name] = _failed(lost_name, f"the process running it died {lost[lost_name]} times")
+                        _announce(out, sweep, records, lost_name, progress)
+                    farm.restart()
+                    break
+                except Exception as e:  # noqa: BLE001 -- a failing run is reported, the sweep goes on
+                    records[name] = _failed(name, f"{type(e).__name__}: {e}")
+                _announce(out, sweep, records, name, progress)
+    finally:
+        for fut in running:
+            fut.cancel()
+        write_summary(out, sweep, records)
+    return records
+
+
+def _failed(name, error, status="failed"):
+    lines = error.strip().splitlines()
+    return {"name": name, "status": status, "error": lines[-1] if lines else error}
+
+
+def _announce(out, sweep, records, name, progress):
+    write_summary(out, sweep, records)
+    if progress is not None:
+        progress(records[name])
+
+
+def _keep(out, answer):
+    """Write a finished run's model, log and result (each atomically; the result last, so a
+    result on disk means the model beside it is complete).  An interrupted training
+    (Ctrl-C reached the worker) is not kept: it is redone next time."""
+    res = answer["result"]
+    if res["status"] not in FINISHED:
+        return {"name": res["name"], "status": "pending"}
+    folder = run_dir(out, res["name"])
+    os.makedirs(folder, exist_ok=True)
+    for name, blob in (("model.h5", answer["model"]), ("model.h5.log.jsonl", answer["log"])):
+        with atomic_path(os.path.join(folder, name)) as tmp, open(tmp, "wb") as f:
+            f.write(blob)
+    with atomic_path(os.path.join(folder, "result.json")) as tmp, open(tmp, "w") as f:
+        json.dump(res, f, indent=1, default=_json_default)
+    return res
+
+
+def _json_default(v):
+    if hasattr(v, "item"):
+        return v.item()
+    if isinstance(v, tuple):
+        return list(v)
+    return str(v)
+
+
+# ---------------------------------------------------------------------------
+# Summary
+# ---------------------------------------------------------------------------
+COLUMNS = ("run", "status", "settings", "epochs", "best_epoch", "val_nmse", "test_nmse", "test_nmse_last",
+           "minutes", "error")
+
+
+def summary_rows(sweep, records):
+    rows = []
+    for p in sweep.runs:
+        r = records.get(p.name, {})
+        minutes = r.get("seconds")
+        rows.append({"run": p.name, "status": r.get("status", "pending"), "settings": p.settings,
+                     "epochs": r.get("epochs"), "best_epoch": r.get("best_epoch"), "val_nmse": r.get("val_nmse"),
+                     "test_nmse": r.get("test_nmse"), "test_nmse_last": r.get("test_nmse_last"),
+                     "minutes": None if minutes is None else minutes / 60,
+                     "error": r.get("error") or (r.get("message") if r.get("status") == "diverged" else None)})
+    return rows
+
+
+def write_summary(out, sweep, records):
+    """OUT/summary.csv and OUT/summary.md: one row per run of the sweep, in the file's order."""
+    rows = summary_rows(sweep, records)
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, COLUMNS, lineterminator="\n")
+    w.writeheader()
+    w.writerows({k: ("" if v is None else v) for k, v in r.items()} for r in rows)
+    _write(os.path.join(out, "summary.csv"), buf.getvalue())
+    done = sum(r["status"] in FINISHED for r in rows)
+    lines = [f"# Sweep {os.path.basename(sweep.path)}", "",
+             f"{done} of {len(rows)} runs finished. nMSE: normalised mean squared error over the predicted steps "
+             "(validation: each file's held-out split; test: the sweep's test files).", "",
+             "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    lines += ["| " + " | ".join(_cell(r[c]) for c in COLUMNS) + " |" for r in rows]
+    _write(os.path.join(out, "summary.md"), "\n".join(lines) + "\n")
+
+
+def _cell(v):
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "inf" if math.isinf(v) else f"{v:.4g}"
+    return str(v).replace("|", "\\|")
+
+
+def _write(path, text):
+    with atomic_path(path) as tmp, open(tmp, "w") as f:
+        f.write(text)
