@@ -249,7 +249,6 @@ def run_task(plan, test_names, parent, *files):
     Returns {"model": bytes, "log": bytes, "result": dict} (result: see `_result`).
     """
     from . import runs
-    from .data import read_trajectories
     from .evaluate import evaluate
     from .train_log import log_path
 
@@ -257,7 +256,7 @@ def run_task(plan, test_names, parent, *files):
         local = [_local(f, os.path.join(tmp, f"data{i}.h5")) for i, f in enumerate(files)]
         n_data = len(local) - len(test_names)
         paths, tests = local[:n_data], local[n_data:]
-        datasets = runs.read_all(paths)
+        datasets = [_read(p, name) for p, name in zip(paths, plan["data"])]
         output = os.path.join(tmp, "model.h5")
         start = time.perf_counter()
         if plan["parent"] is None:
@@ -268,13 +267,25 @@ def run_task(plan, test_names, parent, *files):
                                    datasets=datasets)
         seconds = time.perf_counter() - start
         val = runs.validation_errors(result, datasets, plan["data"])
-        test = [(name, evaluate(result.model, read_trajectories(p), source=name, check_stability=False))
+        test = [(name, evaluate(result.model, _read(p, name), source=name, check_stability=False))
                 for name, p in zip(test_names, tests)]
         with open(output, "rb") as f:
             model_bytes = f.read()
         with open(log_path(output), "rb") as f:
             log_bytes = f.read()
     return {"model": model_bytes, "log": log_bytes, "result": _result(plan, result, seconds, val, test)}
+
+
+def _read(path, name):
+    """The trajectories at ``path`` (a worker's copy); errors name the sweep's file ``name``."""
+    from .data import read_trajectories
+
+    try:
+        return read_trajectories(path)
+    except InputError as e:
+        if e.source != path:
+            raise
+        raise InputError(name, e.field, e.problem, e.expected) from None
 
 
 def _local(ref, path):

@@ -1,0 +1,214 @@
+"""Running on Dask (mpnode[dist]): executors, `generate --scheduler`, sweeps and their faults.
+
+The Dask tests use a real LocalCluster of two process workers (one thread each) and skip
+when Dask is not installed; the sweep file and the executor's own errors are tested without it.
+"""
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+
+import pytest
+from click.testing import CliRunner
+
+from mpnode.cli.main import main
+from mpnode.data import write_trajectories
+from mpnode.data_gen import BUILTIN, generate
+from mpnode.errors import InputError
+from mpnode.executors import open_executor, parse_scheduler
+from mpnode.sweep import FINISHED, read_sweep, run_sweep, run_task
+
+try:
+    import distributed  # noqa: F401
+    HAVE_DASK = True
+except ImportError:
+    HAVE_DASK = False
+needs_dask = pytest.mark.skipif(not HAVE_DASK, reason="Dask not installed (pip install '.[dist]')")
+
+MINIMAL = """
+data = ["train.h5"]      # training files; every run trains on all of them
+[train]                  # settings shared by every run: any `mpnode train` option, with underscores
+epochs = 300
+[grid]                   # every combination is one run
+message_dim = [1, 3, 7]
+seed = [0, 1]
+"""
+
+
+def small(name, B, T, **kw):
+    return replace(BUILTIN[name], trajectories=B, horizon=T, **kw)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("dist")
+    write_trajectories(folder / "train.h5", generate(small("coupled_pendulum", 10, 12), workers=1))
+    write_trajectories(folder / "test.h5", generate(small("coupled_pendulum", 3, 12, seed=7), workers=1))
+    (folder / "bad.h5").write_text("not a trajectory file")
+    return folder
+
+
+@pytest.fixture(scope="module")
+def farm():
+    if not HAVE_DASK:
+        pytest.skip("Dask not installed")
+    with open_executor("local", 2) as f:
+        yield f
+
+
+def sweep_file(folder, name, text):
+    path = folder / name
+    path.write_text(text)
+    return read_sweep(path)
+
+
+# ---- without Dask --------------------------------------------------------------------------
+def test_importing_mpnode_and_its_commands_does_not_import_dask():
+    code = ("import sys, mpnode, mpnode.executors, mpnode.sweep, mpnode.cli.main, mpnode.data_gen; "
+            "print(any(m.split('.')[0] in ('dask', 'distributed') for m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_asking_for_a_scheduler_without_dask_says_how_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed now raises ImportError
+    with pytest.raises(InputError, match=r"pip install 'mpnode\[dist\]'"):
+        with open_executor("local"):
+            pass
+
+
+def test_scheduler_settings():
+    assert parse_scheduler(None) == ("pool", None) == parse_scheduler("none")
+    assert parse_scheduler("local") == ("local", None)
+    assert parse_scheduler("tcp://10.0.0.1:8786") == ("address", "tcp://10.0.0.1:8786")
+    assert parse_scheduler(__file__) == ("file", __file__)
+    with pytest.raises(InputError, match="scheduler file"):
+        parse_scheduler("no-such-file.json")
+
+
+def test_the_issue_minimal_sweep_file_is_six_runs(data):
+    sweep = sweep_file(data, "minimal.toml", MINIMAL)
+    assert [p.name for p in sweep.runs] == [f"message_dim={d},seed={s}" for d in (1, 3, 7) for s in (0, 1)]
+    assert all(p.options["epochs"] == 300 and p.data == [str(data / "train.h5")] for p in sweep.runs)
+    assert sweep.runs[3].options["message_dim"] == 3 and sweep.runs[3].options["seed"] == 1
+    assert len({p.key for p in sweep.runs}) == 6
+
+
+@pytest.mark.parametrize("text, field", [
+    ('data = ["train.h5"]\n[grid]\nmesage_dim = [1]\n', "mesage_dim"),
+    ('data = ["missing.h5"]\n', "data"),
+    ('data = ["train.h5"]\n[[run]]\nname = "a"\nfrom = "b"\n', "from"),
+    ('data = ["train.h5"]\n[[run]]\nname = "a"\n[[run]]\nname = "b"\nfrom = "a"\nmessage_dim = 7\n', "message_dim"),
+    ('data = ["train.h5"]\n[train]\nepochs = -1\n', "epochs"),
+    ('data = ["train.h5"]\nepochs = 3\n', "epochs"),
+])
+def test_a_bad_sweep_file_names_the_key(data, text, field):
+    with pytest.raises(InputError, match=field):
+        sweep_file(data, "bad.toml", text)
+
+
+# ---- on a LocalCluster ---------------------------------------------------------------------
+@needs_dask
+@pytest.mark.parametrize("scene", ["lorenz3", "quad3"])
+def test_generate_on_dask_writes_the_same_file_bit_for_bit(tmp_path, scene):
+    args = ["generate", scene, "-B", "7", "-T", "6", "--seed", "3"]
+    runner = CliRunner()
+    here = runner.invoke(main, [*args, "-o", str(tmp_path / "pool.h5")])
+    assert here.exit_code == 0, here.output
+    there = runner.invoke(main, [*args, "-o", str(tmp_path / "dask.h5"), "--scheduler", "local", "--workers", "2"])
+    assert there.exit_code == 0, there.output
+    assert (tmp_path / "pool.h5").read_bytes() == (tmp_path / "dask.h5").read_bytes()
+
+
+@needs_dask
+def test_a_two_run_sweep_with_a_finetune_child(data, farm, tmp_path):
+    sweep = sweep_file(data, "tune.toml", """
+data = ["train.h5"]
+test = ["test.h5"]
+[train]
+epochs = 4
+batch_size = 4
+[[run]]
+name = "base"
+message_dim = 2
+[[run]]
+name = "tuned"
+from = "base"
+epochs = 2
+lr = 1e-4
+""")
+    seen = []
+    records = run_sweep(sweep, tmp_path, farm, progress=seen.append)
+    assert [r["name"] for r in seen] == ["base", "tuned"]
+    assert all(records[n]["status"] == "completed" for n in ("base", "tuned"))
+    assert records["tuned"]["from"] == "base" and records["tuned"]["epochs"] == 2
+    # the worker trained exactly what this process trains from the same files
+    plan = {**vars(sweep.runs[0])}
+    here = run_task(plan, ["test.h5"], None, str(data / "train.h5"), str(data / "test.h5"))["result"]
+    assert here["val_nmse"] == records["base"]["val_nmse"] and here["test_nmse"] == records["base"]["test_nmse"]
+    tuned = tmp_path / "runs" / "tuned" / "model.h5"
+    from mpnode.model import Model
+
+    assert Model.load(tuned).spec.message_dim == 2  # the parent's, not the default 3
+    summary = (tmp_path / "summary.csv").read_text().splitlines()
+    assert len(summary) == 3 and all(",completed," in row for row in summary[1:])
+    # resumable: nothing is redone, nothing rewritten
+    stamp = tuned.stat().st_mtime_ns
+    again = []
+    run_sweep(sweep, tmp_path, farm, progress=again.append)
+    assert again == [] and tuned.stat().st_mtime_ns == stamp
+
+
+@needs_dask
+def test_a_failing_run_is_reported_and_the_sweep_goes_on(data, farm, tmp_path):
+    sweep = sweep_file(data, "fail.toml", """
+data = ["train.h5"]
+[train]
+epochs = 2
+[[run]]
+name = "good"
+[[run]]
+name = "broken"
+data = ["bad.h5"]
+[[run]]
+name = "child"
+from = "broken"
+""")
+    records = run_sweep(sweep, tmp_path, farm)
+    assert records["good"]["status"] == "completed"
+    assert records["broken"]["status"] == "failed" and "bad.h5" in records["broken"]["error"]
+    assert records["child"]["status"] == "skipped"
+    md = (tmp_path / "summary.md").read_text()
+    assert "| broken | failed |" in md and "| good | completed |" in md
+    assert not (tmp_path / "runs" / "broken").exists()
+
+
+@needs_dask
+def test_a_killed_worker_costs_only_a_retry(data, farm, tmp_path):
+    sweep = sweep_file(data, "kill.toml", """
+data = ["train.h5"]
+[train]
+epochs = 100000
+time_limit = "4s"
+[grid]
+seed = [0, 1]
+""")
+    client = farm.client
+    pids = client.run(os.getpid)
+    result = {}
+    worker = threading.Thread(target=lambda: result.update(run_sweep(sweep, tmp_path, farm)))
+    worker.start()
+    deadline = time.monotonic() + 120
+    while not any(client.processing().values()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(1.0)  # mid-training
+    busy = next(addr for addr, tasks in client.processing().items() if tasks)
+    os.kill(pids[busy], signal.SIGKILL)
+    worker.join(timeout=300)
+    assert not worker.is_alive()
+    assert all(result[p.name]["status"] in FINISHED for p in sweep.runs), result
+    client.wait_for_workers(2, timeout=60)  # the nanny restarted the killed one
+    assert set(client.run(os.getpid).values()) != set(pids.values())
