@@ -9,7 +9,9 @@ An experiment module (exp_*.py) declares
   section of RESULTS.md (markdown), and the numbers behind it (a dict, saved as JSON).
 
 `main` trains the runs of the chosen experiments on a pool of processes (one numba thread
-each: two single-threaded trainings use the 2 cores better than one two-threaded one),
+each: two single-threaded trainings use the 2 cores better than one two-threaded one) or, with
+``--scheduler``, on Dask (mpnode.executors; the workers must see OUT/work, e.g. on this machine
+or on a shared filesystem),
 runs the analyses in order, and assembles RESULTS.md from every section present.
 
 Everything is cached under OUT/work (data files, models, logs) and keyed by the settings
@@ -17,11 +19,11 @@ that made it, so a rerun only redoes what changed (``--force``: everything).
 """
 import argparse
 import concurrent.futures as cf
+import contextlib
 import dataclasses
 import hashlib
 import json
 import math
-import multiprocessing
 import os
 import platform
 import sys
@@ -87,7 +89,7 @@ def data_path(work, spec):
     return Path(work) / "data" / f"{spec.key}.h5"
 
 
-def make_data(work, spec, workers=1):
+def make_data(work, spec, workers=1, scheduler=None):
     """Generate ``spec``'s file unless it is there; return its path."""
     from mpnode.data import write_trajectories
     from mpnode.data_gen.scenes import load_scene
@@ -99,7 +101,7 @@ def make_data(work, spec, workers=1):
     scene = dataclasses.replace(load_scene(spec.scene), trajectories=spec.trajectories, seed=spec.seed)
     if spec.graph_seeds is not None:
         scene = dataclasses.replace(scene, graph=dataclasses.replace(scene.graph, seeds=tuple(spec.graph_seeds)))
-    traj = generate(scene, workers=workers)
+    traj = generate(scene, workers=workers, scheduler=scheduler)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_trajectories(path, traj)  # atomic
     return path
@@ -249,13 +251,9 @@ def _json_default(v):
     return str(v)
 
 
-def _worker_init():
-    # before numba is imported in this process: one thread per training, two trainings at once
-    os.environ["NUMBA_NUM_THREADS"] = "1"
-
-
-def ensure_runs(specs, work, jobs=2, force=False):
-    """Train every run of ``specs`` whose cached result is missing or was made with other settings."""
+def ensure_runs(specs, work, jobs=2, force=False, scheduler=None):
+    """Train every run of ``specs`` whose cached result is missing or was made with other settings,
+    ``jobs`` at a time on a local pool (one numba thread each), or on the Dask ``scheduler``."""
     by_name = {}
     for s in specs:
         if s.name in by_name and by_name[s.name] != s:
@@ -277,11 +275,29 @@ def ensure_runs(specs, work, jobs=2, force=False):
                 changed = True
     if not todo:
         return
-    print(f"training {len(todo)} run(s) ({jobs} at a time): {', '.join(todo)}", flush=True)
+    with _farm(jobs, scheduler) as pool:
+        if pool is not None:
+            jobs = pool.workers
+        print(f"training {len(todo)} run(s) ({jobs} at a time): {', '.join(todo)}", flush=True)
+        _train_all(todo, by_name, work, pool, jobs)
+
+
+def _farm(jobs, scheduler):
+    from mpnode.executors import open_executor, parse_scheduler
+
+    dask = parse_scheduler(scheduler)[0] != "pool"
+    if jobs == 1 and not dask:
+        return contextlib.nullcontext(None)
+    if dask:  # workers elsewhere cannot import this script's folder: send its code
+        import cloudpickle
+
+        cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    return open_executor(scheduler, jobs, one_thread=True)
+
+
+def _train_all(todo, by_name, work, pool, jobs):
     done_names = set(by_name) - set(todo)
     started = time.perf_counter()
-    pool = cf.ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
-                                  initializer=_worker_init) if jobs > 1 else None
     running = {}
     try:
         while todo or running:
@@ -311,8 +327,8 @@ def ensure_runs(specs, work, jobs=2, force=False):
                 done_names.add(s.name)
                 _report(res, started, len(done_names), len(by_name))
     finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
+        for fut in running:
+            fut.cancel()
 
 
 def _report(res, started, k, n):
@@ -444,6 +460,9 @@ def parse_args(argv, description):
                         "run, benchmarks/paper/quick for --quick)")
     p.add_argument("--jobs", type=int, default=2, help="trainings at once (each single-threaded; 1: in-process)")
     p.add_argument("--force", action="store_true", help="retrain and regenerate even what is cached")
+    p.add_argument("--scheduler", default=os.environ.get("MPNODE_SCHEDULER"),
+                   help="run data generation and trainings on Dask: local, tcp://HOST:8786 or a scheduler file "
+                        "(default $MPNODE_SCHEDULER, else the local pool); the workers must see OUT/work")
     args = p.parse_args(argv)
     if args.out is None:
         args.out = HERE / "quick" if args.quick else HERE
@@ -470,9 +489,9 @@ def main(experiments, argv=None, description="MP-NODE paper suite"):
             data_path(work, d).unlink(missing_ok=True)
     for i, d in enumerate(missing, 1):
         t = time.perf_counter()
-        make_data(work, d, workers=2)
+        make_data(work, d, workers=2, scheduler=args.scheduler)
         print(f"data [{i}/{len(missing)}] {d.describe()}: {time.perf_counter() - t:.1f} s", flush=True)
-    ensure_runs(specs, work, jobs=args.jobs, force=args.force)
+    ensure_runs(specs, work, jobs=args.jobs, force=args.force, scheduler=args.scheduler)
     (out / "sections").mkdir(parents=True, exist_ok=True)
     (out / "results").mkdir(parents=True, exist_ok=True)
     for m in modules:
