@@ -31,6 +31,10 @@ class InputError(ValueError):
             msg += f" (expected {self.expected})"
         super().__init__(msg)
 
+    def __reduce__(self):
+        # rebuilt from its four parts, so it survives the trip back from a worker process
+        return type(self), (self.source, self.field, self.problem, self.expected)
+
 
 class NumericalError(RuntimeError):
     """A computation produced NaN/inf or blew up (never written to disk)."""

@@ -212,3 +212,19 @@ seed = [0, 1]
     assert all(result[p.name]["status"] in FINISHED for p in sweep.runs), result
     client.wait_for_workers(2, timeout=60)  # the nanny restarted the killed one
     assert set(client.run(os.getpid).values()) != set(pids.values())
+
+
+def test_sweep_command_on_the_local_pool(data, tmp_path):
+    """The command without Dask: a failing run gives exit status 1 and a summary row; a rerun
+    redoes only the failed run."""
+    (data / "cli.toml").write_text('data = ["train.h5"]\n[train]\nepochs = 2\n'
+                                   '[[run]]\nname = "good"\n[[run]]\nname = "broken"\ndata = ["bad.h5"]\n')
+    out = tmp_path / "out"
+    args = ["sweep", str(data / "cli.toml"), "-o", str(out), "--scheduler", "none", "--workers", "2"]
+    first = CliRunner().invoke(main, args)
+    assert first.exit_code == 1, first.output
+    rows = (out / "summary.csv").read_text().splitlines()
+    assert rows[1].startswith("good,completed,") and rows[2].startswith("broken,failed,")
+    stamp = (out / "runs" / "good" / "model.h5").stat().st_mtime_ns
+    again = CliRunner().invoke(main, args)
+    assert again.exit_code == 1 and (out / "runs" / "good" / "model.h5").stat().st_mtime_ns == stamp
