@@ -21,8 +21,10 @@ Both kinds are used through one `Farm`: ``submit`` returns a `concurrent.futures
 """
 import concurrent.futures as cf
 import contextlib
+import logging
 import multiprocessing
 import os
+import signal
 
 from .errors import InputError
 
@@ -136,8 +138,10 @@ def _open_dask(kind, target, workers, source, value):
     cluster = None
     try:
         if kind == "local":
-            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                   dashboard_address=None, env={"NUMBA_NUM_THREADS": "1"})
+            with _sigint_ignored():  # the workers inherit it: Ctrl-C stops the client, which closes them
+                cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                       dashboard_address=None, env={"NUMBA_NUM_THREADS": "1"},
+                                       silence_logs=logging.ERROR)
             client = Client(cluster)
         elif kind == "address":
             client = Client(target, timeout=CONNECT_TIMEOUT)
@@ -153,6 +157,19 @@ def _open_dask(kind, target, workers, source, value):
     threads = sum(client.nthreads().values())
     # pure=False: the same call twice is two tasks (a rerun is a rerun, never a cached result)
     return Farm(client.get_executor(pure=False), "dask", max(1, threads), client=client, cluster=cluster)
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    try:
+        before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def map_chunks(farm, fn, job, chunks, keep):

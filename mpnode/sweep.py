@@ -368,12 +368,17 @@ def run_sweep(sweep, out, farm, progress=None):
         return farm.submit(run_task, plan, tests, parent, *[ref(f) for f in p.data + sweep.test])
 
     running, lost = {}, {}
+    # the pool gets no more than it runs (a queued task would start after Ctrl-C); Dask queues them itself
+    limit = math.inf if farm.is_dask else farm.workers
     try:
         while todo or running:
             for name in [n for n, p in todo.items() if p.parent is None or records[p.parent]["status"] in FINISHED]:
+                if len(running) >= limit:
+                    break
                 running[submit(todo.pop(name))] = name
             waiting = set(todo) | set(running.values())
-            for name in [n for n, p in todo.items() if p.parent not in waiting]:  # its parent will not finish
+            for name in [n for n, p in todo.items() if p.parent is not None and p.parent not in waiting
+                         and records[p.parent]["status"] not in FINISHED]:  # its parent will not finish
                 records[name] = _failed(name, f"not run: its parent {todo.pop(name).parent} did not finish", "skipped")
                 _announce(out, sweep, records, name, progress)
             if not running:

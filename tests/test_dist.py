@@ -228,3 +228,21 @@ def test_sweep_command_on_the_local_pool(data, tmp_path):
     stamp = (out / "runs" / "good" / "model.h5").stat().st_mtime_ns
     again = CliRunner().invoke(main, args)
     assert again.exit_code == 1 and (out / "runs" / "good" / "model.h5").stat().st_mtime_ns == stamp
+
+
+@needs_dask
+def test_ctrl_c_leaves_every_finished_run_and_a_rerun_continues(data, farm, tmp_path):
+    sweep = sweep_file(data, "stop.toml", 'data = ["train.h5"]\n[train]\nepochs = 2\n[grid]\nseed = [0, 1, 2]\n')
+
+    def stop(record):
+        raise KeyboardInterrupt  # as Ctrl-C in the client, right after the first run is written
+
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(sweep, tmp_path, farm, progress=stop)
+    rows = (tmp_path / "summary.csv").read_text().splitlines()[1:]
+    first = [r.split(",")[0] for r in rows if ",completed," in r]
+    assert len(first) == 1 and (tmp_path / "runs" / first[0] / "model.h5").exists()
+    redone = []
+    records = run_sweep(sweep, tmp_path, farm, progress=redone.append)
+    assert all(r["status"] == "completed" for r in records.values())
+    assert first[0] not in [r["name"] for r in redone]
