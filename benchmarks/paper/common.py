@@ -282,17 +282,17 @@ def ensure_runs(specs, work, jobs=2, force=False, scheduler=None):
         _train_all(todo, by_name, work, pool, jobs)
 
 
+@contextlib.contextmanager
 def _farm(jobs, scheduler):
-    from mpnode.executors import open_executor, parse_scheduler
+    from mpnode.executors import open_executor
 
-    dask = parse_scheduler(scheduler)[0] != "pool"
-    if jobs == 1 and not dask:
-        return contextlib.nullcontext(None)
-    if dask:  # workers elsewhere cannot import this script's folder: send its code
-        import cloudpickle
-
-        cloudpickle.register_pickle_by_value(sys.modules[__name__])
-    return open_executor(scheduler, jobs, one_thread=True)
+    if jobs == 1 and scheduler in (None, "", "none"):
+        yield None
+        return
+    with open_executor(scheduler, jobs, one_thread=True) as farm:
+        if farm.is_dask:  # workers elsewhere cannot import this script's folder: send them this module
+            farm.client.upload_file(str(HERE / "common.py"))
+        yield farm
 
 
 def _train_all(todo, by_name, work, pool, jobs):
