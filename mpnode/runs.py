@@ -95,12 +95,14 @@ def with_recipe(options, name, system):
 
 
 def train(paths, output, options=None, *, recipe_name="auto", resume=False, progress=None, notify=None,
-          datasets=None):
+          datasets=None, names=None):
     """Train a new model on the trajectory files ``paths`` (or continue the run beside ``output``).
 
     options : see the module docstring; what they leave unset comes from ``recipe_name``
     (the model records the recipe and what it chose).  Returns the TrainResult (its model is
     the best one, also saved at ``output`` with the log and the checkpoint beside it).
+    names : what to call the files in the model's attributes and in messages (default: ``paths``;
+    a sweep's worker trains on copies and names the originals).
     """
     datasets = datasets or read_all(paths)
     options, chosen = with_recipe(options, recipe_name, datasets[0].system)
@@ -111,15 +113,17 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     model = None
     if not resume:
         model = new_model(datasets, **model_options, seed=config.seed, split=make_split(datasets, config))
-    attrs = _attrs(paths, datasets, recipe=recipe_name, schedule=config.schedule)
-    return fit(model, datasets, config, output, sources=list(map(str, paths)), resume=resume, progress=progress,
+    names = names or paths
+    attrs = _attrs(names, datasets, recipe=recipe_name, schedule=config.schedule)
+    return fit(model, datasets, config, output, sources=list(map(str, names)), resume=resume, progress=progress,
                notify=notify, model_attrs=attrs)
 
 
 def finetune(model_path, paths, output, options=None, *, refit_norm=False, resume=False, progress=None,
-             notify=None, datasets=None):
+             notify=None, datasets=None, names=None, parent_name=None):
     """Continue training the model in ``model_path`` on ``paths``: exactly its weights, settings
-    and (unless ``refit_norm``) normalisation; model options other than substeps are the model's."""
+    and (unless ``refit_norm``) normalisation; model options other than substeps are the model's.
+    names, parent_name : what to call the data files and the model in attributes (see `train`)."""
     datasets = datasets or read_all(paths)
     model_options, config = split_options({"norm": "fit" if refit_norm else "keep", **(options or {})})
     fixed = {k for k, v in (options or {}).items() if k in MODEL_OPTIONS and k != "substeps"}
@@ -131,8 +135,9 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, resum
         model = Model.load(model_path)
         if "substeps" in (options or {}):
             model = model.with_spec(substeps=int(model_options["substeps"]))
-    attrs = _attrs(paths, datasets, finetuned_from=os.path.abspath(model_path))
-    return fit(model, datasets, config, output, sources=list(map(str, paths)), resume=resume, progress=progress,
+    names = names or paths
+    attrs = _attrs(names, datasets, finetuned_from=parent_name or os.path.abspath(model_path))
+    return fit(model, datasets, config, output, sources=list(map(str, names)), resume=resume, progress=progress,
                notify=notify, model_attrs=attrs)
 
 

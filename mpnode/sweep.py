@@ -58,6 +58,7 @@ class RunPlan:
     parent: str = None
     refit_norm: bool = False
     settings: str = ""  # what sets this run apart, for the summary
+    parent_model: str = None  # where the parent's model file is on the client (for the model's attributes)
     key: str = ""  # digest of everything that decides the run (settings, data contents, parent's key)
 
 
@@ -260,11 +261,12 @@ def run_task(plan, test_names, parent, *files):
         output = os.path.join(tmp, "model.h5")
         start = time.perf_counter()
         if plan["parent"] is None:
-            result = runs.train(paths, output, plan["options"], recipe_name=plan["recipe"], datasets=datasets)
+            result = runs.train(paths, output, plan["options"], recipe_name=plan["recipe"], datasets=datasets,
+                                names=plan["data"])
         else:
             model = _local(parent, os.path.join(tmp, "parent.h5"))
             result = runs.finetune(model, paths, output, plan["options"], refit_norm=plan["refit_norm"],
-                                   datasets=datasets)
+                                   datasets=datasets, names=plan["data"], parent_name=plan["parent_model"])
         seconds = time.perf_counter() - start
         val = runs.validation_errors(result, datasets, plan["data"])
         test = [(name, evaluate(result.model, _read(p, name), source=name, check_stability=False))
@@ -365,6 +367,8 @@ def run_sweep(sweep, out, farm, progress=None):
                 with open(parent, "rb") as f:
                     parent = f.read()
         plan = dataclasses.asdict(p)
+        if p.parent is not None:
+            plan["parent_model"] = os.path.abspath(os.path.join(run_dir(out, p.parent), "model.h5"))
         return farm.submit(run_task, plan, tests, parent, *[ref(f) for f in p.data + sweep.test])
 
     running, lost = {}, {}

@@ -152,7 +152,11 @@ lr = 1e-4
     tuned = tmp_path / "runs" / "tuned" / "model.h5"
     from mpnode.model import Model
 
-    assert Model.load(tuned).spec.message_dim == 2  # the parent's, not the default 3
+    model = Model.load(tuned)
+    assert model.spec.message_dim == 2  # the parent's, not the default 3
+    # the model names the client's files, not the worker's copies
+    assert model.attrs["finetuned_from"] == str(tmp_path / "runs" / "base" / "model.h5")
+    assert model.attrs["trained_on"] == str(data / "train.h5")
     summary = (tmp_path / "summary.csv").read_text().splitlines()
     assert len(summary) == 3 and all(",completed," in row for row in summary[1:])
     # resumable: nothing is redone, nothing rewritten
