@@ -145,10 +145,12 @@ lr = 1e-4
     assert [r["name"] for r in seen] == ["base", "tuned"]
     assert all(records[n]["status"] == "completed" for n in ("base", "tuned"))
     assert records["tuned"]["from"] == "base" and records["tuned"]["epochs"] == 2
-    # the worker trained exactly what this process trains from the same files
+    # the worker trained what this process trains from the same files (to float32 rounding: the
+    # workers run one numba thread, this process may run more, and threads change summation order)
     plan = {**vars(sweep.runs[0])}
     here = run_task(plan, ["test.h5"], None, str(data / "train.h5"), str(data / "test.h5"))["result"]
-    assert here["val_nmse"] == records["base"]["val_nmse"] and here["test_nmse"] == records["base"]["test_nmse"]
+    for key in ("val_nmse", "test_nmse"):
+        assert here[key] == pytest.approx(records["base"][key], rel=1e-5)
     tuned = tmp_path / "runs" / "tuned" / "model.h5"
     from mpnode.model import Model
 
