@@ -1,17 +1,32 @@
-"""Time mpnode's rollout and training step (loss + exact gradient, no optimiser) on S1-S5.
+"""Time mpnode's rollout and training step (loss + exact gradient, no optimiser) on S1-S6.
 
-The workloads are those of the peer harness (torch / JAX; same graphs, sizes, dt = 0.05,
+S1-S5 are the workloads of the peer harness (torch / JAX; same graphs, sizes, dt = 0.05,
 T = 50, classic RK4) so that the figures compare with it.  For each case and model kind
 it prints the FLOP floor -- the field's multiply-adds x 4 stages x steps x nodes at the
 rate of a large GEMM *measured in the same run* (the training step counts 3x the
 forward) -- and our ratio to it.  Medians of >= 7 timed calls after warm-up; float32 and
 2 threads unless told otherwise.
 
-    python benchmarks/bench_engine.py [--json] [--cases S1,S2] [--kinds mpnode,l2s] [--dtype float64]
+Large graphs (rollout only, B = 1, T = 50; each case in a fresh process so that its
+memory peak is its own): R200k and S6, random 6-regular graphs of 200,000 and 1,000,000
+nodes (with S5's 20,000: time per node-step against size), and L6, a 1000 x 1000 grid
+whose nodes are numbered at random (a graph with locality, as a user's file may number
+it), run with the engine's locality ordering and without it (L6-none).  Peak memory is
+the process's resident-set high-water mark (Linux VmHWM) over the rollouts, reset just
+before them, so it counts everything resident -- Python, the kernels, the graph, the
+rollout -- but not building the graph.  ``--profile`` splits the large cases' time:
+the rollout without neighbour sums (zero_messages: same dense work, no gather), the
+dense layers alone, and one thread.
+
+    python benchmarks/bench_engine.py [--json] [--cases S1,S2] [--kinds mpnode,l2s] [--dtype float32,float64]
+    python benchmarks/bench_engine.py --cases S5,R200k,S6,L6,L6-none --kinds mpnode [--profile]
 """
 import argparse
 import json
+import os
 import statistics
+import subprocess
+import sys
 import time
 
 import networkx as nx
@@ -22,6 +37,39 @@ from mpnode.graph import Graph, block_diagonal
 from mpnode.layouts import glorot_init
 from mpnode.losses import value_and_grad
 
+
+def random_regular(d, n, seed=0):
+    """A random d-regular graph by the pairing model: shuffle d stubs per node, pair them,
+    and re-pair the stubs of self-loops and repeated pairs (with as many random good pairs)
+    until none is left.  networkx's generator takes 45 s and 1.4 GB for a million nodes."""
+    rng = np.random.default_rng(seed)
+    stubs = np.repeat(np.arange(n, dtype=np.int64), d)
+    rng.shuffle(stubs)
+    pairs = stubs.reshape(-1, 2)
+    for _ in range(100):
+        lo, hi = pairs.min(axis=1), pairs.max(axis=1)
+        key = lo * n + hi
+        order = np.argsort(key, kind="stable")
+        bad = lo == hi
+        bad[order[1:]] |= key[order[1:]] == key[order[:-1]]
+        if not bad.any():
+            return Graph.from_edges(n, pairs)
+        good = np.flatnonzero(~bad)
+        redo = np.concatenate([np.flatnonzero(bad), rng.choice(good, size=min(bad.sum(), len(good)), replace=False)])
+        s = pairs[redo].ravel()
+        rng.shuffle(s)
+        pairs[redo] = s.reshape(-1, 2)
+    raise RuntimeError(f"no simple {d}-regular pairing of {n} nodes")
+
+
+def shuffled_grid(side, seed=0):
+    """A side x side 4-neighbour grid with its nodes numbered in a random order."""
+    ids = np.random.default_rng(seed).permutation(side * side).reshape(side, side)
+    pairs = np.concatenate([np.stack([ids[:, :-1].ravel(), ids[:, 1:].ravel()], 1),
+                            np.stack([ids[:-1].ravel(), ids[1:].ravel()], 1)])
+    return Graph.from_edges(side * side, pairs)
+
+
 CASES = {
     "S1": dict(label="lorenz3", N=3, dx=3, dm=3, B=128, graph=lambda: Graph.complete(3)),
     "S2": dict(label="lorenz10", N=10, dx=3, dm=3, B=128, graph=lambda: Graph.complete(10)),
@@ -31,16 +79,22 @@ CASES = {
                graph=lambda: Graph.from_networkx(nx.barabasi_albert_graph(10, 5, seed=42))),
     "S5": dict(label="big", N=20000, dx=3, dm=3, B=1,
                graph=lambda: Graph.from_networkx(nx.random_regular_graph(6, 20000, seed=0))),
+    "R200k": dict(label="rr6 200k", N=200_000, dx=3, dm=3, B=1, big=True, graph=lambda: random_regular(6, 200_000)),
+    "S6": dict(label="rr6 1M", N=1_000_000, dx=3, dm=3, B=1, big=True, graph=lambda: random_regular(6, 1_000_000)),
+    "L6": dict(label="grid 1M", N=1_000_000, dx=3, dm=3, B=1, big=True, graph=lambda: shuffled_grid(1000)),
+    "L6-none": dict(label="grid 1M", N=1_000_000, dx=3, dm=3, B=1, big=True, ordering="none",
+                    graph=lambda: shuffled_grid(1000)),
 }
 H, T, DT = 32, 50, 0.05
 
 
-def timed(call, n_min=7, min_total_s=3.0, max_reps=30):
+def timed(call, n_min=7, min_total_s=3.0, max_reps=30, warm=True):
     """First call (compile or cache load + run), one more warm-up, then >= n_min timed calls (ms)."""
     t0 = time.perf_counter()
     call()
     first = time.perf_counter() - t0
-    call()
+    if warm:
+        call()
     times = []
     start = time.perf_counter()
     while len(times) < max_reps and (len(times) < n_min or time.perf_counter() - start < min_total_s):
@@ -74,53 +128,173 @@ def macs_per_node(case, kind):
     return (dx + dm) * H + H * H + H * (dx + dm)
 
 
-def spec_for(case, kind):
+def spec_for(case, kind, zero_messages=False):
     c = CASES[case]
     if kind == "l2s":
         return FieldSpec(c["dx"], 0, 0, H, DT, 1, kind="l2s", aggregation="sum")
-    return FieldSpec(c["dx"], 0, c["dm"], H, DT, 1)
+    return FieldSpec(c["dx"], 0, c["dm"], H, DT, 1, zero_messages=zero_messages)
 
 
-def run_case(case, kind, dtype, gflops):
+# ---------------------------------------------------------------------------
+# Memory: the resident-set high-water mark, reset before what is measured
+# ---------------------------------------------------------------------------
+def _status_mb(field):
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def reset_peak():
+    """Reset VmHWM to the current RSS (Linux >= 4.0); False where that is not possible."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def run_case(case, kind, dtype, gflops, profile=False):
     c = CASES[case]
+    big = c.get("big", False)
     spec = spec_for(case, kind)
     graph = block_diagonal([c["graph"]()] * c["B"])
     m = graph.n_nodes
     theta = glorot_init(spec, seed=0, dtype=dtype)
     x = np.random.default_rng(1).standard_normal((T + 1, m, c["dx"])).astype(dtype)
-    first_r, roll, _ = timed(lambda: forward(spec, theta, x[0], graph, n_steps=T))
-    first_t, train, _ = timed(lambda: value_and_grad(spec, theta, x, graph))
+    ordering = c.get("ordering", "auto")
+    rss_before = _status_mb("VmRSS")
+    exact_peak = reset_peak()
+    reps = dict(n_min=3, min_total_s=0, warm=False) if big else {}
+    first_r, roll, _ = timed(lambda: forward(spec, theta, x[0], graph, n_steps=T, ordering=ordering), **reps)
+    peak = _status_mb("VmHWM")
+    train = first_t = float("nan")
+    if not big:
+        first_t, train, _ = timed(lambda: value_and_grad(spec, theta, x, graph))
     fl = 2 * macs_per_node(case, kind) * 4 * T * m / (gflops * 1e9) * 1e3
-    return {"case": case, "label": c["label"], "kind": kind, "dtype": np.dtype(dtype).name, "nodes": m,
-            "macs_per_node": macs_per_node(case, kind), "gemm_gflops": round(gflops, 1),
-            "rollout_ms": round(roll, 3), "train_step_ms": round(train, 3),
-            "floor_ms": round(fl, 3), "train_floor_ms": round(3 * fl, 3),
-            "rollout_ratio": round(roll / fl, 2), "train_ratio": round(train / (3 * fl), 2),
-            "first_call_s": round(max(first_r, first_t), 2)}
+    r = {"case": case, "label": c["label"], "kind": kind, "dtype": np.dtype(dtype).name, "nodes": m,
+         "edges": graph.n_edges, "ordering": ordering,
+         "macs_per_node": macs_per_node(case, kind), "gemm_gflops": round(gflops, 1),
+         "rollout_ms": round(roll, 3), "train_step_ms": round(train, 3),
+         "ns_per_node_step": round(roll * 1e6 / (m * T), 1),
+         "floor_ms": round(fl, 3), "train_floor_ms": round(3 * fl, 3),
+         "rollout_ratio": round(roll / fl, 2), "train_ratio": round(train / (3 * fl), 2),
+         "first_call_s": round(max(first_r, first_t) if not big else first_r, 2),
+         "rss_before_mb": round(rss_before), "peak_rss_mb": round(peak) if exact_peak else None,
+         "rollout_output_mb": round(x.nbytes / 2**20)}
+    if profile:
+        r.update(stage_profile(case, kind, spec, theta, x[0], graph, ordering, roll))
+    return r
+
+
+# ---------------------------------------------------------------------------
+# Where the time goes on one large graph
+# ---------------------------------------------------------------------------
+def stage_profile(case, kind, spec, theta, x0, graph, ordering, full_ms):
+    """Split a rollout (ms, T steps) into: the neighbour sums (the rollout minus the same
+    rollout with zero_messages, which skips them), the dense layers alone (the MLP over
+    every node's inputs, 4 x T times, in 256-row tiles on the same threads), and the rest
+    (the stage buffers: inputs, RK combination, caches; barriers).  Also one thread."""
+    import numba
+
+    once = dict(n_min=3, min_total_s=0, warm=False)
+    zspec = spec_for(case, kind, zero_messages=True)
+    no_sum = timed(lambda: forward(zspec, theta, x0, graph, n_steps=T, ordering=ordering), **once)[1]
+    V = np.random.default_rng(2).standard_normal((graph.n_nodes, spec.state_width)).astype(theta.dtype)
+    sweeps = _mlp_sweeps_kernel()
+    dense = timed(lambda: _blas_pinned(sweeps, theta, V, 4 * T), **once)[1]
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        one = timed(lambda: forward(spec, theta, x0, graph, n_steps=T, ordering=ordering), **once)[1]
+    finally:
+        numba.set_num_threads(threads)
+    return {"no_sum_ms": round(no_sum, 1), "sum_ms": round(full_ms - no_sum, 1), "dense_ms": round(dense, 1),
+            "rest_ms": round(no_sum - dense, 1), "one_thread_ms": round(one, 1)}
+
+
+def _blas_pinned(fn, *args):
+    from mpnode.engine import single_threaded_blas
+
+    with single_threaded_blas():
+        fn(*args)
+
+
+def _mlp_sweeps_kernel():
+    """A compiled loop: the MP-NODE MLP over every row of V, n_sweeps times, 256-row tiles
+    in parallel (as the stagewise driver tiles a graph)."""
+    from numba import njit, prange
+
+    from mpnode.kernels.layers import JIT
+    from mpnode.kernels.mpnode_field import mlp_forward
+
+    @njit(parallel=True, **dict(JIT, cache=False))
+    def sweeps(theta, V, n_sweeps):
+        M, dz = V.shape
+        ntiles = (M + 255) // 256
+        for _ in range(n_sweeps):
+            for k in prange(ntiles):
+                i0 = k * 256
+                i1 = min(M, i0 + 256)
+                H1 = np.empty((i1 - i0, H), V.dtype)
+                H2 = np.empty((i1 - i0, H), V.dtype)
+                mlp_forward(theta, V[i0:i1], H1, H2, dz)
+
+    return sweeps
+
+
+def run_isolated(case, kind, dtype, profile):
+    """run_case in a fresh process (large graphs: the memory peak is the case's own)."""
+    cmd = [sys.executable, os.path.abspath(__file__), "--one", case, "--kinds", kind, "--dtype", dtype]
+    if profile:
+        cmd.append("--profile")
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def print_row(r):
+    mem = f"{r['peak_rss_mb']:>8}" if r["peak_rss_mb"] is not None else f"{'-':>8}"
+    print(f"{r['case'] + ' ' + r['label']:<18}{r['kind']:<8}{r['dtype'][5:]:<4}{r['nodes']:>9}"
+          f"{r['rollout_ms']:>11.2f}{r['floor_ms']:>9.2f}{r['rollout_ratio']:>6.1f}"
+          f"{r['train_step_ms']:>10.2f}{r['train_floor_ms']:>9.2f}{r['train_ratio']:>6.1f}"
+          f"{r['ns_per_node_step']:>9.1f}{mem}", flush=True)
+    if "sum_ms" in r:
+        print(f"{'':<18}profile: no sums {r['no_sum_ms']:.0f} ms -> sums {r['sum_ms']:.0f}, dense layers "
+              f"{r['dense_ms']:.0f}, rest {r['rest_ms']:.0f}; one thread {r['one_thread_ms']:.0f} ms", flush=True)
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", default=",".join(CASES), help="comma-separated subset of S1..S5")
+    ap.add_argument("--cases", default="S1,S2,S3,S4,S5", help=f"comma-separated subset of {', '.join(CASES)}")
     ap.add_argument("--kinds", default="mpnode,l2s", help="comma-separated model kinds: mpnode, l2s")
-    ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--dtype", default="float32", help="float32, float64 or both, comma-separated")
+    ap.add_argument("--profile", action="store_true", help="split the large cases' rollout time (see above)")
     ap.add_argument("--json", action="store_true", help="one JSON object per case")
+    ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: one case, JSON, in this process
     args = ap.parse_args()
-    dtype = np.dtype(args.dtype)
-    gflops = gemm_gflops(dtype)
-    if not args.json:
-        print(f"floor: {dtype.name} GEMM at {gflops:.0f} GFLOP/s (2048^2, measured now)")
-        print(f"{'case':<14}{'kind':<8}{'nodes':>7}{'MACs':>6}{'rollout ms':>12}{'floor':>8}{'x':>6}"
-              f"{'train ms':>10}{'floor':>8}{'x':>6}")
-    for case in args.cases.split(","):
-        for kind in args.kinds.split(","):
-            r = run_case(case, kind, dtype, gflops)
-            if args.json:
-                print(json.dumps(r), flush=True)
-            else:
-                print(f"{case + ' ' + r['label']:<14}{kind:<8}{r['nodes']:>7}{r['macs_per_node']:>6}"
-                      f"{r['rollout_ms']:>12.2f}{r['floor_ms']:>8.2f}{r['rollout_ratio']:>6.1f}"
-                      f"{r['train_step_ms']:>10.2f}{r['train_floor_ms']:>8.2f}{r['train_ratio']:>6.1f}", flush=True)
+    if args.one:
+        dtype = np.dtype(args.dtype)
+        print(json.dumps(run_case(args.one, args.kinds, dtype, gemm_gflops(dtype), args.profile)))
+        return
+    for name in args.dtype.split(","):
+        dtype = np.dtype(name)
+        gflops = gemm_gflops(dtype)
+        if not args.json:
+            print(f"floor: {dtype.name} GEMM at {gflops:.0f} GFLOP/s (2048^2, measured now); peak = VmHWM MB")
+            print(f"{'case':<18}{'kind':<8}{'':<4}{'nodes':>9}{'rollout ms':>11}{'floor':>9}{'x':>6}"
+                  f"{'train ms':>10}{'floor':>9}{'x':>6}{'ns/n-st':>9}{'peak':>8}")
+        for case in args.cases.split(","):
+            for kind in args.kinds.split(","):
+                if CASES[case].get("big"):
+                    r = run_isolated(case, kind, dtype.name, args.profile)
+                else:
+                    r = run_case(case, kind, dtype, gflops, args.profile and case == "S5")
+                if args.json:
+                    print(json.dumps(r), flush=True)
+                else:
+                    print_row(r)
 
 
 if __name__ == "__main__":

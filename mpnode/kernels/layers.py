@@ -177,13 +177,15 @@ def aggregate_tile(src, col0, width, sums, indptr, indices, weight, self_msg, i0
             for d in range(width):
                 out[r, ocol0 + d] = sums[zi, d] * w
             continue
-        p0 = indptr[i]
-        p1 = indptr[i + 1]
+        # row by row: each neighbour's columns are read together (one cache line), its index once
         for d in range(width):
-            acc = src[zi, col0 + d] if self_msg else src.dtype.type(0)
-            for p in range(p0, p1):
-                acc += src[indices[p] - zoff, col0 + d]
-            out[r, ocol0 + d] = acc * w
+            out[r, ocol0 + d] = src[zi, col0 + d] if self_msg else src.dtype.type(0)
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p] - zoff
+            for d in range(width):
+                out[r, ocol0 + d] += src[j, col0 + d]
+        for d in range(width):
+            out[r, ocol0 + d] *= w
 
 
 @njit(**JIT)

@@ -50,9 +50,11 @@ def mlp_backward(theta, V, H1, H2, GK, gtheta):
 
 
 @njit(**JIT)
-def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2):
+def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc, mcol0):
     """k = F(zin) for nodes i0..i1: returns K (n, dz); V, H1, H2 (this tile's rows) keep the
-    MLP's inputs and activations for the VJP.  ``sums``: dense-path row sums or empty."""
+    MLP's inputs and activations for the VJP.  ``sums``: dense-path row sums or empty.
+    The neighbours' messages are read from msrc[:, mcol0:mcol0+dm]: zin itself (mcol0 = dx),
+    or a compact copy of its message columns (mcol0 = 0; half the memory a gather touches)."""
     _, dx, du, dm, _, self_msg, zero_msg = dims
     indptr, indices, weight = graph
     c = dx + du
@@ -65,7 +67,7 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2):
     if zero_msg:
         V[:, c:] = 0
     else:
-        aggregate_tile(zin, dx, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, V, c)
+        aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, V, c)
     K = mlp_forward(theta, V, H1, H2, dx + dm)
     if zero_msg:
         K[:, dx:] = 0

@@ -132,7 +132,7 @@ def update_tile(theta, dims, zin, u, S, sums, graph, i0, i1, zoff, C, slot, r0, 
         return l2s_field.update_tile(theta, dims, S, sums, graph, i0, i1, zoff, C[1][slot, r0:r1],
                                      C[3][slot, r0:r1], C[4][slot, r0:r1])
     return mpnode_field.update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, C[0][slot, r0:r1],
-                                    C[1][slot, r0:r1], C[2][slot, r0:r1])
+                                    C[1][slot, r0:r1], C[2][slot, r0:r1], zin, dims[1])
 
 
 @njit(**JIT)
@@ -320,10 +320,12 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
 @njit(parallel=True, **JIT)
 def rollout_stagewise(theta, dims, z0, U, graph, substeps, h, out, states, zend):
     """Forward rollout of one large graph (arguments as rollout_blocks).  Work arrays are per
-    tile; only what L2S nodes send (h0, s) is kept for the whole graph, so memory stays
-    ~ M * (dz + 2 H) beside ``states``."""
+    tile; only what nodes send is kept for the whole graph (L2S: h0, s; MP-NODE: a compact
+    copy of the stage input's message columns, ping-pong, which the neighbour gather reads:
+    on a graph too large for the caches that halves the memory its random reads touch), so
+    memory stays ~ M * (4 dz + 2 dm or 2 H) beside ``states``."""
     M = z0.shape[0]
-    kind, dx, du, H = dims[0], dims[1], dims[2], dims[4]
+    kind, dx, du, dm, H = dims[0], dims[1], dims[2], dims[3], dims[4]
     T = out.shape[0] - 1
     keep = states.shape[0] > 0
     ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
@@ -332,6 +334,10 @@ def rollout_stagewise(theta, dims, z0, U, graph, substeps, h, out, states, zend)
     H0 = np.empty((M if kind == L2S else 0, H), z0.dtype)
     S = np.empty_like(H0)
     none = np.empty((0, 0), z0.dtype)
+    msg = np.empty((M if kind != L2S else 0, dm), z0.dtype)
+    if kind != L2S:
+        msg[:] = z0[:, dx:dx + dm]  # the first stage's input is z0
+    mnext = np.empty_like(msg)
     out[0] = z0[:, :dx]
     if keep:
         states[0] = z
@@ -353,8 +359,14 @@ def rollout_stagewise(theta, dims, z0, U, graph, substeps, h, out, states, zend)
                         K = l2s_field.update_tile(theta, dims, S, none, graph, i0, i1, 0, H0[i0:i1], C[3][0], C[4][0])
                     else:
                         K = mpnode_field.update_tile(theta, dims, zin, U[t], none, graph, i0, i1, 0, C[0][0],
-                                                     C[1][0], C[2][0])
+                                                     C[1][0], C[2][0], msg, 0)
                     fold_tile(stage, h, K, z, zout, acc, i0, i1, 0)
+                    if kind != L2S:  # the next stage's messages: zout's (stage 3: the new z's)
+                        nxt = z if stage == 3 else zout
+                        for i in range(i0, i1):
+                            for d in range(dm):
+                                mnext[i, d] = nxt[i, dx + d]
+                msg, mnext = mnext, msg
             if keep:
                 states[t * substeps + s + 1] = z
         out[t + 1] = z[:, :dx]
