@@ -30,7 +30,7 @@ def test_results_has_every_section_and_figure(quick_run):
                   "10. Messages against a monolithic neural ODE"):
         assert f"## {title}" in text
     for fig in ("messages_loss", "messages_trajectories", "messages_norms", "finetune_curves", "message_size",
-                "speed_vs_error", "schedule_val_loss"):
+                "speed_vs_error", "schedule_val_loss", "quadrotor_message_size"):
         png = quick_run / "figures" / f"{fig}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"figures/{fig}.png" in text

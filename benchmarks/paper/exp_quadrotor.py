@@ -10,7 +10,7 @@ and from scratch, and the scaled MP-NODE fine-tuned; efficiency = min test nMSE 
     python benchmarks/paper/exp_quadrotor.py [--quick]
 """
 import exp_finetune
-from common import DataSpec, RunSpec, evaluate_nmse, main, run_line, table
+from common import DataSpec, RunSpec, evaluate_nmse, main, pyplot, run_line, table
 
 NAME = "quadrotor"
 TITLE = "9. Quadrotor swarm: message sizes, L2S, 3 -> 6 quadrotors (paper Fig. 7, 9, Table 2)"
@@ -85,6 +85,7 @@ def analyse(ctx):
         numbers[name] = {"min_nmse": best, "epoch": epoch, "product": product, "run": run_line(res)}
         rows6.append([label, res["test_curve"][0][1] if res["spec"]["init_from"] else "", best, epoch, product,
                       PAPER.get(name, "N/A" if "scratch" in name and "m20" in name else "")])
+    link = message_size_figure(ctx, rows3, rows6)
     hold = hold_errors(ctx)
     numbers["hold_initial_state"] = hold
     budget = "3 epochs" if ctx.mode.quick else f"{MINUTES} minutes of wall time each (two at a time, one thread each)"
@@ -104,10 +105,31 @@ def analyse(ctx):
         "",
         table(["run", "zero-shot nMSE", "min test nMSE", "epoch", "efficiency", "paper (Table 2)"], rows6),
         "",
+        link,
+        "",
         "Runs: " + "; ".join(f"**{n}**: {numbers[n]['run']}" for n in numbers if isinstance(numbers[n], dict)
                              and "run" in numbers[n]) + ".",
     ]
     return "\n".join(text), numbers
+
+
+def message_size_figure(ctx, rows3, rows6):
+    """Fig. 7 in spirit: test nMSE of each quad3 model on quad3 and zero-shot on quad6, and of the
+    quad6 runs (fine-tuned and from scratch)."""
+    plt = pyplot()
+    fig, (a3, a6) = plt.subplots(1, 2, figsize=(12, 3.6))
+    names = [r[0] for r in rows3]
+    x = range(len(names))
+    a3.bar([i - 0.2 for i in x], [r[5] for r in rows3], width=0.4, label="quad3 test")
+    a3.bar([i + 0.2 for i in x], [r[6] for r in rows3], width=0.4, label="quad6, zero-shot")
+    a3.set(xticks=list(x), yscale="log", ylabel="test nMSE", title="trained on 3 quadrotors")
+    a3.set_xticklabels(names, rotation=20, fontsize=8)
+    a3.legend(fontsize=8)
+    a6.bar(range(len(rows6)), [r[2] for r in rows6], color="C2")
+    a6.set(xticks=list(range(len(rows6))), ylabel="min test nMSE", title="trained on 6 quadrotors (80 trajectories)")
+    a6.set_xticklabels([r[0].replace(" from quad3", "").replace(", ", "\n") for r in rows6], fontsize=7)
+    fig.tight_layout()
+    return ctx.figure(fig, "quadrotor_message_size")
 
 
 def hold_errors(ctx):
