@@ -66,10 +66,11 @@ def sweep_file(folder, name, text):
 
 
 # ---- without Dask --------------------------------------------------------------------------
-def test_importing_mpnode_and_its_commands_does_not_import_dask():
+def test_importing_mpnode_and_its_commands_does_not_import_dask(tmp_path):
     code = ("import sys, mpnode, mpnode.executors, mpnode.sweep, mpnode.cli.main, mpnode.data_gen; "
             "print(any(m.split('.')[0] in ('dask', 'distributed') for m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    # run outside the checkout: its mpnode/ folder has no cli/ (that installs as mpnode.cli)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=tmp_path)
     assert out.stdout.strip() == "False"
 
 

@@ -5,6 +5,7 @@ fail, where `import mpnode`, a rollout, the Simulator and `mpnode eval` must sti
 (test_kinds checks the engine against this path on both drivers and on awkward graphs.)"""
 import subprocess
 import sys
+import tempfile
 import textwrap
 
 import numpy as np
@@ -100,8 +101,9 @@ np.save(out_path, x)
 
 
 def run_python(code, *args):
+    # outside the checkout, so the installed mpnode (with mpnode.cli) is the one imported
     res = subprocess.run([sys.executable, "-c", textwrap.dedent(code), *map(str, args)], capture_output=True,
-                         text=True, timeout=300)
+                         text=True, timeout=300, cwd=tempfile.gettempdir())
     assert res.returncode == 0, res.stdout + res.stderr
     return res
 
