@@ -68,9 +68,10 @@ class Scene:
                 f"dt={self.dt:g}: {self.description}")
 
 
-def _lorenz(k, coupling, level):
-    return Scene(f"lorenz{k}{level}", f"{k} Lorenz oscillators, linear coupling ||H||_F = {coupling:g}",
-                 "lorenz", GraphSpec("complete", k), {"coupling": coupling})
+def _lorenz(k, coupling, level, horizon=50):
+    span = "" if horizon == 50 else f", {horizon * 0.05:g} s per trajectory"
+    return Scene(f"lorenz{k}{level}", f"{k} Lorenz oscillators, linear coupling ||H||_F = {coupling:g}{span}",
+                 "lorenz", GraphSpec("complete", k), {"coupling": coupling}, horizon=horizon)
 
 
 def _gene(n, kind, seeds=(1,), initial="uniform"):
@@ -100,7 +101,7 @@ BUILTIN = {
         Scene("coupled_pendulum", "two pendulums joined by a spring", "coupled_pendulum",
               GraphSpec("edges", 2, edges=((0, 1),))),
         _lorenz(3, 0.01, ""), _lorenz(7, 0.01, ""), _lorenz(10, 0.01, ""),
-        _lorenz(10, 1.0, "_medium"), _lorenz(10, 5.0, "_high"),
+        _lorenz(10, 1.0, "_medium"), _lorenz(10, 5.0, "_high"), _lorenz(10, 0.01, "_10s", horizon=200),
         *(_gene(n, kind) for n in (16, 64) for kind in ("er", "ba", "ws")),
         _gene(16, "ba", seeds=(1, 2, 3, 4, 5)),
         *(_gene(n, kind, initial="hotspots") for n in (16, 64) for kind in ("er", "ba", "ws")),

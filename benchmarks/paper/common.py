@@ -217,14 +217,20 @@ def train_run(spec, work):
         return runs.train(paths, model_file, opts, recipe_name=spec.recipe, resume=resume, progress=progress,
                           datasets=datasets)
 
-    curve = []
+    curve, curve_paper = [], []
+
+    def test_point(epoch, model):
+        ev = evaluate(model, test, check_stability=False)
+        curve.append([epoch, ev.nmse])
+        curve_paper.append([epoch, paper_units(model, test, ev.predictions)])
+
     if test is not None:  # the test curve starts at the initial weights (epoch 0)
-        curve.append([0, evaluate(segment(0, False).model, test, check_stability=False).nmse])
+        test_point(0, segment(0, False).model)
     result = None
     for i, stop in enumerate(stops):
         result = segment(stop, resume=test is not None or i > 0)
         if test is not None:
-            curve.append([result.epoch, evaluate(result.model, test, check_stability=False).nmse])
+            test_point(result.epoch, result.model)
         if result.status != "completed":
             break
     history = read_log(log_path(model_file))
@@ -237,7 +243,7 @@ def train_run(spec, work):
            "best_epoch": result.best_epoch, "best_val_loss": result.best_val_loss,
            "seconds": time.perf_counter() - t0,
            "history": [{k: r.get(k) for k in ("epoch", "train_loss", "val_loss", "window", "lr")} for r in history],
-           "test_curve": curve}
+           "test_curve": curve, "test_curve_paper_units": curve_paper}
     with atomic_path(out / "result.json") as tmp:
         Path(tmp).write_text(json.dumps(res, default=_json_default))
     return res
@@ -400,6 +406,26 @@ def zscore_mse(model, traj, pred):
     x = np.asarray(traj.x, dtype=np.float64)
     e = (np.asarray(pred, dtype=np.float64)[:, 1:] - x[:, 1:]) / model.x_std
     return float(np.mean(e * e))
+
+
+def paper_units(model, traj, pred):
+    """The paper's loss: Huber (delta 1) of the error in the model's z-scored units, summed over
+    steps 1..T and state dimensions, averaged over nodes and trajectories."""
+    from mpnode.losses import huber
+
+    x = (np.asarray(traj.x, dtype=np.float64) - model.x_mean) / model.x_std
+    p = (np.asarray(pred, dtype=np.float64) - model.x_mean) / model.x_std
+    b, t1, n, d = x.shape
+    flat = lambda a: a.transpose(1, 0, 2, 3).reshape(t1, b * n, d)  # noqa: E731 -- the engine's layout
+    return huber(flat(p), flat(x), b * n)[0]
+
+
+def hold_nmse(traj):
+    """nMSE of holding the initial state: what a model must beat to be of any use."""
+    from mpnode.metrics import nmse
+
+    x = np.asarray(traj.x, dtype=np.float64)
+    return nmse(np.broadcast_to(x[:, :1], x.shape)[:, 1:], x[:, 1:], spread=x)
 
 
 def table(headers, rows):

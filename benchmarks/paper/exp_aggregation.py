@@ -13,7 +13,7 @@ column) and on gene64 (BA(64, 32): four times the nodes, twice the mean degree).
 import numpy as np
 
 import exp_topologies
-from common import DataSpec, RunSpec, evaluate_nmse, main, run_line, table, zscore_mse
+from common import DataSpec, RunSpec, evaluate_nmse, hold_nmse, main, paper_units, run_line, table, zscore_mse
 
 NAME = "aggregation"
 TITLE = "7. Aggregation and the L2S baseline on unseen graphs (gene16, 10 minutes each)"
@@ -88,26 +88,6 @@ def gene64_table(ctx, numbers):
         rows.append([label, res["test_curve"][0][1] if res["spec"]["init_from"] else "", best, epoch, product,
                      PAPER_TABLE2.get(name, "")])
     return table(["gene64 run", "zero-shot nMSE", "min test nMSE", "epoch", "efficiency", "paper (Table 2)"], rows)
-
-
-def paper_units(model, traj, pred):
-    """The paper's loss: Huber (delta 1) of the error in the model's z-scored units, summed over
-    steps 1..T and state dimensions, averaged over nodes and trajectories."""
-    from mpnode.losses import huber
-
-    x = (np.asarray(traj.x, dtype=np.float64) - model.x_mean) / model.x_std
-    p = (np.asarray(pred, dtype=np.float64) - model.x_mean) / model.x_std
-    b, t1, n, d = x.shape
-    flat = lambda a: a.transpose(1, 0, 2, 3).reshape(t1, b * n, d)  # noqa: E731 -- the engine's layout
-    return huber(flat(p), flat(x), b * n)[0]
-
-
-def hold_nmse(traj):
-    """nMSE of holding the initial state: what a model must beat to be of any use."""
-    from mpnode.metrics import nmse
-
-    x = np.asarray(traj.x, dtype=np.float64)
-    return nmse(np.broadcast_to(x[:, :1], x.shape)[:, 1:], x[:, 1:], spread=x)
 
 
 def analyse(ctx):

@@ -10,7 +10,7 @@ and from scratch, and the scaled MP-NODE fine-tuned; efficiency = min test nMSE 
     python benchmarks/paper/exp_quadrotor.py [--quick]
 """
 import exp_finetune
-from common import DataSpec, RunSpec, evaluate_nmse, main, pyplot, run_line, table
+from common import DataSpec, RunSpec, evaluate_nmse, hold_nmse, main, pyplot, run_line, table
 
 NAME = "quadrotor"
 TITLE = "9. Quadrotor swarm: message sizes, L2S, 3 -> 6 quadrotors (paper Fig. 7, 9, Table 2)"
@@ -134,7 +134,6 @@ def message_size_figure(ctx, rows3, rows6):
 
 def hold_errors(ctx):
     """nMSE of holding the initial state on the quad3 and quad6 test sets."""
-    from exp_aggregation import hold_nmse
 
     return {"quad3": hold_nmse(ctx.data(q3_test(ctx.mode))), "quad6": hold_nmse(ctx.data(q6_test(ctx.mode)))}
 
