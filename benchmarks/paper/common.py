@@ -37,7 +37,7 @@ HERE = Path(__file__).resolve().parent
 #: the experiments, in the order of RESULTS.md
 EXPERIMENTS = ("exp_messages", "exp_topologies", "exp_more_nodes", "exp_finetune", "exp_message_size", "exp_speed",
                "exp_aggregation", "exp_schedule",
-               "exp_quadrotor", "exp_node")
+               "exp_quadrotor", "exp_node", "exp_tables")
 PAPER_EPOCHS = 4000
 
 
@@ -222,7 +222,7 @@ def train_run(spec, work):
     def test_point(epoch, model):
         ev = evaluate(model, test, check_stability=False)
         curve.append([epoch, ev.nmse])
-        curve_paper.append([epoch, paper_units(model, test, ev.predictions)])
+        curve_paper.append([epoch, paper_units(test, ev.predictions)])
 
     if test is not None:  # the test curve starts at the initial weights (epoch 0)
         test_point(0, segment(0, False).model)
@@ -408,13 +408,17 @@ def zscore_mse(model, traj, pred):
     return float(np.mean(e * e))
 
 
-def paper_units(model, traj, pred):
-    """The paper's loss: Huber (delta 1) of the error in the model's z-scored units, summed over
-    steps 1..T and state dimensions, averaged over nodes and trajectories."""
+def paper_units(traj, pred):
+    """The paper's loss: Huber (delta 1) of the z-scored error, summed over steps 1..T and state
+    dimensions, averaged over nodes and trajectories.  The z-score is the test set's own (per state
+    dimension, over trajectories, steps and nodes), the scale a model trained on such data uses: one
+    scale per test set, so a fine-tuned model (which keeps its source's normalisation) and one
+    trained from scratch are measured alike."""
     from mpnode.losses import huber
 
-    x = (np.asarray(traj.x, dtype=np.float64) - model.x_mean) / model.x_std
-    p = (np.asarray(pred, dtype=np.float64) - model.x_mean) / model.x_std
+    x = np.asarray(traj.x, dtype=np.float64)
+    mean, std = x.mean(axis=(0, 1, 2)), x.std(axis=(0, 1, 2))
+    x, p = (x - mean) / std, (np.asarray(pred, dtype=np.float64) - mean) / std
     b, t1, n, d = x.shape
     flat = lambda a: a.transpose(1, 0, 2, 3).reshape(t1, b * n, d)  # noqa: E731 -- the engine's layout
     return huber(flat(p), flat(x), b * n)[0]

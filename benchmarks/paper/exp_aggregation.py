@@ -102,7 +102,7 @@ def analyse(ctx):
             ev = evaluate_nmse(model, traj)
             paper = PAPER[kind].get(key) if key else None
             numbers[name][dspec.key] = {"nmse": ev.nmse, "zscore_mse": zscore_mse(model, traj, ev.predictions),
-                                        "paper_units": paper_units(model, traj, ev.predictions),
+                                        "paper_units": paper_units(traj, ev.predictions),
                                         "blown_up": ev.n_bad, "paper": paper}
             n = numbers[name][dspec.key]
             rows.append([what if label == sets[0][0] else "", label, ev.nmse, n["zscore_mse"], n["paper_units"],
@@ -134,8 +134,9 @@ def analyse(ctx):
         "",
         table2,
         "",
-        "*Paper units*: the training loss of the Julia code -- Huber (delta 1) of the z-scored error,",
-        "summed over the 50 steps and the state dimension, averaged over nodes and trajectories. For",
+        "*Paper units*: the training loss of the Julia code -- Huber (delta 1) of the z-scored error (here",
+        "z-scored with the test set's own mean and spread, one scale for every model on it), summed over",
+        "the 50 steps and the state dimension, averaged over nodes and trajectories. For",
         "gene (one state dimension, errors well below 1) it is about 25 times the z-scored MSE (50 steps of",
         "e^2 / 2), so the two readings of Table 1 differ by that factor; the reading at the top of RESULTS.md",
         "compares them.",
