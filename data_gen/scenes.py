@@ -30,10 +30,10 @@ Unknown keys, wrong types and missing keys raise InputError(file, key, problem, 
 """
 import math
 import os
-import tomllib
 from dataclasses import dataclass, field
 
 from mpnode.errors import InputError
+from mpnode.tomlfile import load_toml
 
 from .graphs import BUILDERS, RANDOM_BUILDERS, GraphSpec, check_args, gene_graph, kuramoto_graph
 from .initial import get_sampler
@@ -184,17 +184,7 @@ _TYPE_NAMES = {str: "a string", int: "an integer", float: "a number", dict: "a t
 def read_scene(path):
     """The Scene described by the TOML file ``path`` (schema in the module docstring)."""
     source = os.fspath(path)
-    try:
-        with open(source, "rb") as f:
-            doc = tomllib.load(f)
-    except FileNotFoundError:
-        raise InputError(source, "file", "does not exist", "a TOML scene file") from None
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(source, "TOML", str(e), "valid TOML") from None
-    except UnicodeDecodeError as e:
-        raise InputError(source, "TOML", f"is not UTF-8 text ({e.reason} at byte {e.start})", "valid TOML") from None
-    except OSError as e:  # a folder, no permission, ...
-        raise InputError(source, "file", f"cannot be read ({e.strerror or e})", "a readable TOML scene file") from None
+    doc = load_toml(source, "a TOML scene file")
     _check_keys(doc, _TOP, source, "", required=("system", "graph"))
     g = doc["graph"]
     _check_keys(g, _GRAPH, source, "graph.", required=("builder", "nodes"))

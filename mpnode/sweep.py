@@ -27,13 +27,13 @@ import math
 import os
 import tempfile
 import time
-import tomllib
 from concurrent.futures import FIRST_COMPLETED, wait
 from concurrent.futures.process import BrokenProcessPool
 
 from .atomic import atomic_path
 from .errors import InputError
 from .runs import MODEL_OPTIONS, parse_duration, split_options
+from .tomlfile import load_toml
 
 #: what a sweep file may hold at its top level
 TOP_KEYS = ("data", "test", "recipe", "train", "grid", "run")
@@ -75,13 +75,7 @@ class Sweep:
 def read_sweep(path):
     """The Sweep of TOML file ``path``; InputError naming the key for anything that cannot run."""
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as f:
-            doc = tomllib.load(f)
-    except FileNotFoundError:
-        raise InputError(path, "file", "does not exist", "a sweep file (docs/sweep-format.md)") from None
-    except (OSError, tomllib.TOMLDecodeError) as e:
-        raise InputError(path, "file", f"cannot be read as TOML: {e}", "a sweep file (docs/sweep-format.md)") from None
+    doc = load_toml(path, "a sweep file (docs/sweep-format.md)")
     for key in doc:
         if key not in TOP_KEYS:
             raise InputError(path, key, "is not a sweep key", "one of " + ", ".join(TOP_KEYS))
