@@ -23,8 +23,10 @@ def test_builtin_scenes():
         check_scene(s, name)
         assert s.name == name and s.description and "\n" not in s.description
         dt = 0.1 if s.system == "quadrotor_load" else 0.05  # quadrotor.md: dt = 0.1, T = 50
-        assert (s.dt, s.horizon, s.trajectories) == (dt, 50, 1000)
-    assert [BUILTIN[n].params["coupling"] for n in ("lorenz10", "lorenz10_medium", "lorenz10_high")] == [0.01, 1.0, 5.0]
+        horizon = 200 if name == "lorenz10_10s" else 50  # the paper's Fig. 5e: 10 s at dt = 0.05
+        assert (s.dt, s.horizon, s.trajectories) == (dt, horizon, 1000)
+    assert [BUILTIN[n].params["coupling"] for n in ("lorenz10", "lorenz10_medium", "lorenz10_high", "lorenz10_10s")] \
+        == [0.01, 1.0, 5.0, 0.01]
     assert BUILTIN["gene16_ba_multi"].graph.seeds == (1, 2, 3, 4, 5)
     # the paper's gene data start from hot spots (NDCN): same graphs, other initial states
     for name in EXPECTED:
