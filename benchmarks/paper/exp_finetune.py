@@ -110,6 +110,9 @@ def first_epoch_below(curve, level):
 
 
 def analyse(ctx):
+    import gene_grid  # Fig. 6a (here, not at the top: this edit stays inside analyse)
+    from common import test_curve
+
     plt = pyplot()
     cs = cases(ctx.mode)
     fig, axes = plt.subplots(1, len(cs), figsize=(3.3 * len(cs), 3.2), squeeze=False)
@@ -139,9 +142,8 @@ def analyse(ctx):
                          f"{eff_sc[2] / eff_ft[2]:.1f}x" if eff_ft[2] > 0 else "", "never" if reach is None else reach])
         for i, (res, name) in enumerate(fts + [(sc, "scratch")]):
             color = "C3" if res is sc else f"C{i}"
-            c = np.asarray(res["test_curve"], dtype=float)  # drawn at the evaluation epochs
-            c = c[c[:, 0] > 0] if not res["spec"]["init_from"] else c
-            ax.plot(np.maximum(c[:, 0], 1), c[:, 1], "o-", ms=2.5, color=color, lw=1, label=name)
+            e, v = test_curve(res)  # drawn at the evaluation epochs
+            ax.plot(np.maximum(e, 1), v, "o-", ms=2.5, color=color, lw=1, label=name)
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_title(label, fontsize=8)
@@ -151,6 +153,9 @@ def analyse(ctx):
     axes[0][0].set_ylabel("test nMSE (best-val model)")
     fig.tight_layout()
     link = ctx.figure(fig, "finetune_curves")
+    fig6a, numbers["gene64"]["fig6a"] = gene_grid.gene_grid(  # Fig. 6a: the fine-tuned gene64 model on an 8x8 grid
+        ctx, ctx.model("gene64_finetune"), ctx.data(next(c[3] for c in cs if c[0] == "gene64_{}")),
+        "fig6_gene_grid_8x8", gene_grid.FIG6A, "gene64 fine-tuned from gene16 (run gene64_finetune)")
     text = [
         f"Test curves: the best-validation model so far, evaluated at {test_points(ctx.mode)} "
         "evenly spaced epochs (and, for fine-tuning, at epoch 0: the source model itself, 'zero-shot').",
@@ -165,6 +170,8 @@ def analyse(ctx):
         "library, so we compare the direction and size of the effect, not its numbers.",
         "",
         link,
+        "",
+        fig6a,
         "",
         "Runs: " + "; ".join(runs_text) + ".",
     ]
