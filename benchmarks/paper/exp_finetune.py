@@ -153,9 +153,10 @@ def analyse(ctx):
     axes[0][0].set_ylabel("test nMSE (best-val model)")
     fig.tight_layout()
     link = ctx.figure(fig, "finetune_curves")
-    fig6a, numbers["gene64"]["fig6a"] = gene_grid.gene_grid(  # Fig. 6a: the fine-tuned gene64 model on an 8x8 grid
-        ctx, ctx.model("gene64_finetune"), ctx.data(next(c[3] for c in cs if c[0] == "gene64_{}")),
-        "fig6_gene_grid_8x8", gene_grid.FIG6A, "gene64 fine-tuned from gene16 (run gene64_finetune)")
+    gene = next(c for c in cs if c[0] == "gene64_{}")  # Fig. 6a: the fine-tuned gene64 model on an 8x8 grid
+    fig6a, numbers["gene64"]["fig6a"] = gene_grid.gene_grid(
+        ctx, ctx.model(finetune_name(gene[0], 1e-3)), ctx.data(gene[3]), "fig6_gene_grid_8x8", gene_grid.FIG6A,
+        f"gene64 fine-tuned from gene16 (run {finetune_name(gene[0], 1e-3)})")
     text = [
         f"Test curves: the best-validation model so far, evaluated at {test_points(ctx.mode)} "
         "evenly spaced epochs (and, for fine-tuning, at epoch 0: the source model itself, 'zero-shot').",

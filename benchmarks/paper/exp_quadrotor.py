@@ -19,7 +19,8 @@ DIMS = (7, 13, 20)
 #: Table 2, quadrotors: MP-NODE fine-tuned 236.00, scratch N/A, L2S 476.0
 FIG9 = "Figure 9: Performance of a 3 Quadrotor MP-NODE finetuned on the 6 Quadrotor System"
 #: Fig. 9's pairs: (fine-tuned run, its from-scratch counterpart or None, colour)
-FIG9_PAIRS = (("q6_ft_m20", "q6_scratch_m20", "C0"), ("q6_ft_m20_scaled", None, "C2"), ("q6_ft_l2s", "q6_scratch_l2s", "C3"))
+FIG9_PAIRS = (("q6_ft_m20", "q6_scratch_m20", "C0"), ("q6_ft_m20_scaled", None, "C2"),
+              ("q6_ft_l2s", "q6_scratch_l2s", "C3"))
 PAPER = {"q6_ft_m20": 236.0, "q6_ft_l2s": 476.0}
 
 
@@ -176,7 +177,8 @@ def fig9_sentence(ctx, ft, sc, labels):
     reach = nums["epochs_to_scratch_best"]
     return (text + f" against {nums['scratch_min_nmse']:.3g} from scratch (at the first evaluation, epoch {int(e1)}: "
             f"{v_ft:.3g} against {v_sc:.3g}), and "
-            + (f"it reaches scratch's best by epoch {reach}" if reach is not None else "it never reaches scratch's best"),
+            + (f"it reaches scratch's best by epoch {reach}" if reach is not None
+               else "it never reaches scratch's best"),
             nums)
 
 
