@@ -29,11 +29,13 @@ def test_results_has_every_section_and_figure(quick_run):
                   "8. Learning-rate schedule", "9. Quadrotor swarm",
                   "10. Messages against a monolithic neural ODE"):
         assert f"## {title}" in text
-    for fig in ("messages_loss", "messages_trajectories", "messages_norms", "finetune_curves", "message_size",
-                "speed_vs_error", "schedule_val_loss", "quadrotor_message_size"):
+    for fig in ("messages_loss", "fig2_pendulum", "fig3b_no_messages", "kuramoto_trajectories", "finetune_curves",
+                "fig6_gene_grid_8x8", "fig6_gene_grid_4x4_er", "message_size", "speed_vs_error", "schedule_val_loss",
+                "quadrotor_message_size", "fig9_quadrotor_finetune"):
         png = quick_run / "figures" / f"{fig}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"figures/{fig}.png" in text
+    assert text.count("Paper's caption") >= 7  # Fig. 2, 3a, 3b, 4, 6a, 6b, 9 quote the paper beside ours
 
 
 def test_every_run_completed(quick_run):

@@ -450,6 +450,22 @@ def curve(res, key):
     return np.array([r["epoch"] for r in h]), np.array([r[key] for r in h], dtype=float)
 
 
+def test_curve(res, key="test_curve"):
+    """(epochs, test error) of a run's test curve (``key``: test_curve in nMSE, test_curve_paper_units)
+    at its evaluation epochs; a scratch run's epoch-0 point (evaluated before fit fitted the
+    normalisation) is dropped."""
+    c = np.asarray(res[key], dtype=float).reshape(-1, 2)
+    if not res["spec"]["init_from"]:
+        c = c[c[:, 0] > 0]
+    return c[:, 0], c[:, 1]
+
+
+def figure_block(link, caption, ours):
+    """A figure as RESULTS.md shows one the paper has: the image, the paper's caption quoted, and
+    one sentence of what ours shows (computed by the caller)."""
+    return f"{link}\n\nPaper's caption: \"{caption}\"\n\nOurs: {ours}"
+
+
 def flatness(res, key="val_loss", frac=0.2):
     """Relative improvement of the best ``key`` over the last ``frac`` of the epochs (small: flattened)."""
     e, v = curve(res, key)

@@ -21,9 +21,10 @@ two test errors: our nMSE, and the paper's units (`common.paper_units`).
 import numpy as np
 
 import exp_messages
+import gene_grid
 import exp_more_nodes
 import exp_topologies
-from common import DataSpec, RunSpec, main, pyplot, run_line, table
+from common import DataSpec, RunSpec, main, pyplot, run_line, table, test_curve
 
 NAME = "finetune"
 TITLE = "4. Fine-tuning against training from scratch (paper Fig. 5, Table 2)"
@@ -169,10 +170,8 @@ def draw_panel(ax, panel, title, members):
     """One panel of Fig. 5: per training-set size, fine-tuned (solid) and scratch (dashed) test curves."""
     for i, (label, ft, sc) in enumerate(members):
         for res, style, who in ((ft, "-", "fine-tuned"), (sc, "--", "scratch")):
-            c = np.asarray(res["test_curve_paper_units"], dtype=float)
-            c = c[c[:, 0] > 0] if not res["spec"]["init_from"] else c
-            ax.plot(np.maximum(c[:, 0], 1), c[:, 1], style, marker="o", ms=2, color=f"C{i}", lw=1,
-                    label=f"{who}, {label}")
+            e, v = test_curve(res, "test_curve_paper_units")
+            ax.plot(np.maximum(e, 1), v, style, marker="o", ms=2, color=f"C{i}", lw=1, label=f"{who}, {label}")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_title(f"Fig. {panel}: {title}", fontsize=8)
@@ -212,6 +211,10 @@ def analyse(ctx):
         numbers[case[0].replace("_{}", "")] = n
         runs_text += [f"**{res['name']}**: {run_line(res)}" for res in runs]
     link = draw_figure(ctx, cs)
+    gene = next(c for c in cs if c[0] == "gene64_{}")  # Fig. 6a: the fine-tuned gene64 model on an 8x8 grid
+    fig6a, numbers["gene64"]["fig6a"] = gene_grid.gene_grid(
+        ctx, ctx.model(finetune_name(gene[0], 1e-3)), ctx.data(gene[3]), "fig6_gene_grid_8x8", gene_grid.FIG6A,
+        f"gene64 fine-tuned from gene16 (run {finetune_name(gene[0], 1e-3)})")
     text = [
         f"Test curves: the best-validation model so far, evaluated at {test_points(ctx.mode)} "
         "evenly spaced epochs (and, for fine-tuning, at epoch 0: the source model itself, 'zero-shot').",
@@ -227,6 +230,8 @@ def analyse(ctx):
                "fine-tuned epochs to scratch's best nMSE"], rows),
         "",
         link,
+        "",
+        fig6a,
         "",
         "Runs: " + "; ".join(runs_text) + ".",
     ]

@@ -10,13 +10,18 @@ and from scratch, and the scaled MP-NODE fine-tuned; efficiency = min test nMSE 
     python benchmarks/paper/exp_quadrotor.py [--quick]
 """
 import exp_finetune
-from common import DataSpec, RunSpec, evaluate_nmse, hold_nmse, main, pyplot, run_line, table
+from common import (DataSpec, RunSpec, evaluate_nmse, figure_block, hold_nmse, main, pyplot, run_line, table,
+                    test_curve)
 
 NAME = "quadrotor"
 TITLE = "9. Quadrotor swarm: message sizes, L2S, 3 -> 6 quadrotors (paper Fig. 7, 9, Table 2)"
 MINUTES = 4
 DIMS = (7, 13, 20)
 #: Table 2, quadrotors: MP-NODE fine-tuned 236.00, scratch N/A, L2S 476.0
+FIG9 = "Figure 9: Performance of a 3 Quadrotor MP-NODE finetuned on the 6 Quadrotor System"
+#: Fig. 9's pairs: (fine-tuned run, its from-scratch counterpart or None, colour)
+FIG9_PAIRS = (("q6_ft_m20", "q6_scratch_m20", "C0"), ("q6_ft_m20_scaled", None, "C2"),
+              ("q6_ft_l2s", "q6_scratch_l2s", "C3"))
 PAPER = {"q6_ft_m20": 236.0, "q6_ft_l2s": 476.0}
 
 
@@ -86,6 +91,7 @@ def analyse(ctx):
         rows6.append([label, res["test_curve"][0][1] if res["spec"]["init_from"] else "", best, epoch, product,
                       PAPER.get(name, "N/A" if "scratch" in name and "m20" in name else "")])
     link = message_size_figure(ctx, rows3, rows6)
+    fig9, numbers["fig9"] = fig9_finetune(ctx)
     hold = hold_errors(ctx)
     numbers["hold_initial_state"] = hold
     budget = "3 epochs" if ctx.mode.quick else f"{MINUTES} minutes of wall time each (two at a time, one thread each)"
@@ -106,6 +112,8 @@ def analyse(ctx):
         table(["run", "zero-shot nMSE", "min test nMSE", "epoch", "efficiency", "paper (Table 2)"], rows6),
         "",
         link,
+        "",
+        fig9,
         "",
         "Runs: " + "; ".join(f"**{n}**: {numbers[n]['run']}" for n in numbers if isinstance(numbers[n], dict)
                              and "run" in numbers[n]) + ".",
@@ -130,6 +138,49 @@ def message_size_figure(ctx, rows3, rows6):
     a6.set_xticklabels([r[0].replace(" from quad3", "").replace(", ", "\n") for r in rows6], fontsize=7)
     fig.tight_layout()
     return ctx.figure(fig, "quadrotor_message_size")
+
+
+def fig9_finetune(ctx):
+    """Fig. 9: test nMSE against epoch on quad6, each quad3 model fine-tuned (solid) and its
+    from-scratch counterpart (dashed, same colour); returns (markdown block, numbers)."""
+    plt = pyplot()
+    labels = {name: label for name, label, _ in target_runs(ctx.mode)}
+    fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    numbers, bits = {}, []
+    for ft, sc, color in FIG9_PAIRS:
+        for name, style in ((ft, "o-"), (sc, "s--")):
+            if name is not None:
+                e, v = test_curve(ctx.result(name))
+                ax.plot(e, v, style, ms=3, color=color, lw=1.2, label=labels[name])
+        bits.append(fig9_sentence(ctx, ft, sc, labels))
+        numbers[ft] = bits[-1][1]
+    ax.set(yscale="log", xlabel="epoch (fine-tuning's epoch 0: the quad3 model, zero-shot)",
+           ylabel="quad6 test nMSE (best-val model)", title="quad3 -> quad6: fine-tuned (solid) vs scratch (dashed)")
+    ax.title.set_fontsize(9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    link = ctx.figure(fig, "fig9_quadrotor_finetune")
+    return figure_block(link, FIG9, "; ".join(b for b, _ in bits) + "."), numbers
+
+
+def fig9_sentence(ctx, ft, sc, labels):
+    """What Fig. 9 shows for one fine-tuned run (and its scratch counterpart): (sentence, numbers)."""
+    c_ft = exp_finetune.model_curve(ctx.result(ft))
+    nums = {"min_nmse": exp_finetune.efficiency(c_ft)[0]}
+    text = f"{labels[ft]}: min test nMSE {nums['min_nmse']:.3g}"
+    if sc is None:
+        return text + " (no scratch run)", nums
+    c_sc = exp_finetune.model_curve(ctx.result(sc))
+    nums["scratch_min_nmse"] = exp_finetune.efficiency(c_sc)[0]
+    nums["epochs_to_scratch_best"] = exp_finetune.first_epoch_below(c_ft, nums["scratch_min_nmse"])
+    (e1, v_ft), (_, v_sc) = ([(e, v) for e, v in zip(*test_curve(ctx.result(n))) if e > 0][0] for n in (ft, sc))
+    nums["first_evaluation"] = {"epoch": int(e1), "finetuned": float(v_ft), "scratch": float(v_sc)}
+    reach = nums["epochs_to_scratch_best"]
+    return (text + f" against {nums['scratch_min_nmse']:.3g} from scratch (at the first evaluation, epoch {int(e1)}: "
+            f"{v_ft:.3g} against {v_sc:.3g}), and "
+            + (f"it reaches scratch's best by epoch {reach}" if reach is not None
+               else "it never reaches scratch's best"),
+            nums)
 
 
 def hold_errors(ctx):
