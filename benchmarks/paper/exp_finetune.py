@@ -21,9 +21,9 @@ two test errors: our nMSE, and the paper's units (`common.paper_units`).
 import numpy as np
 
 import exp_messages
-import gene_grid
 import exp_more_nodes
 import exp_topologies
+import gene_grid
 from common import DataSpec, RunSpec, main, pyplot, run_line, table, test_curve
 
 NAME = "finetune"
