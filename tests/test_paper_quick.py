@@ -27,7 +27,8 @@ def test_results_has_every_section_and_figure(quick_run):
     for title in ("1. Messages matter", "2. Zero-shot to unseen topologies", "3. Zero-shot to more nodes",
                   "4. Fine-tuning", "5. Message size", "6. Speed against error", "7. Aggregation",
                   "8. Learning-rate schedule", "9. Quadrotor swarm",
-                  "10. Messages against a monolithic neural ODE"):
+                  "10. Messages against a monolithic neural ODE", "11. The paper's integrator",
+                  "12. The paper's Tables 1 and 2"):
         assert f"## {title}" in text
     for fig in ("messages_loss", "fig2_pendulum", "fig3b_no_messages", "kuramoto_trajectories", "finetune_curves",
                 "fig6_gene_grid_8x8", "fig6_gene_grid_4x4_er", "message_size", "speed_vs_error", "schedule_val_loss",
@@ -36,6 +37,13 @@ def test_results_has_every_section_and_figure(quick_run):
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"figures/{fig}.png" in text
     assert text.count("Paper's caption") >= 7  # Fig. 2, 3a, 3b, 4, 6a, 6b, 9 quote the paper beside ours
+
+
+def test_tables_set_every_column_beside_the_paper(quick_run):
+    tables = (quick_run / "sections" / "exp_tables.md").read_text()
+    for cell in ("validation, BA (training graphs)", "test, WS (unseen)", "Lorenz10 ds=50", "Kuramoto ds=50",
+                 "Gene, paper's settings", "Gene, defaults + L2S", "Quadrotors 3 -> 6", "(632.7)", "(1358.5)"):
+        assert cell in tables, cell
 
 
 def test_every_run_completed(quick_run):
@@ -48,8 +56,9 @@ def test_every_run_completed(quick_run):
 def test_aggregation_runs_use_the_recipes_aggregations(quick_run):
     numbers = json.loads((quick_run / "results" / "aggregation.json").read_text())
     assert {name: numbers[name]["aggregation"] for name in
-            ("gene16_paper_mean", "gene16_scaled", "gene16_default", "gene16_l2s")} == {
-        "gene16_paper_mean": "mean", "gene16_scaled": "scaled", "gene16_default": "scaled", "gene16_l2s": "sum"}
+            ("gene16_paper_mean", "gene16_scaled", "gene16_default", "gene16_l2s", "gene16_default_hot")} == {
+        "gene16_paper_mean": "mean", "gene16_scaled": "scaled", "gene16_default": "scaled", "gene16_l2s": "sum",
+        "gene16_default_hot": "scaled"}
     assert all(v["nmse"] > 0 for case in ("gene16_default", "gene16_l2s") for k, v in numbers[case].items()
                if isinstance(v, dict))
 

@@ -37,7 +37,7 @@ HERE = Path(__file__).resolve().parent
 #: the experiments, in the order of RESULTS.md
 EXPERIMENTS = ("exp_messages", "exp_topologies", "exp_more_nodes", "exp_finetune", "exp_message_size", "exp_speed",
                "exp_aggregation", "exp_schedule",
-               "exp_quadrotor", "exp_node", "exp_tables")
+               "exp_quadrotor", "exp_node", "exp_integrator", "exp_tables")
 PAPER_EPOCHS = 4000
 
 

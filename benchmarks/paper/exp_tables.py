@@ -23,7 +23,7 @@ import exp_quadrotor
 from common import main, paper_units, table
 
 NAME = "tables"
-TITLE = "11. The paper's Tables 1 and 2, cell by cell"
+TITLE = "12. The paper's Tables 1 and 2, cell by cell"
 #: Table 1 of the paper: (cell, our run, our test set key in aggregation.json, paper)
 TABLE1 = (("validation, BA (training graphs)", "seen", 0.0051), ("test, BA (unseen graphs)", "ba", 0.0045),
           ("test, ER (unseen)", "er", 0.0026), ("test, WS (unseen)", "ws", 0.0023))
