@@ -56,9 +56,9 @@ def test_every_run_completed(quick_run):
 def test_aggregation_runs_use_the_recipes_aggregations(quick_run):
     numbers = json.loads((quick_run / "results" / "aggregation.json").read_text())
     assert {name: numbers[name]["aggregation"] for name in
-            ("gene16_paper_mean", "gene16_scaled", "gene16_default", "gene16_l2s", "gene16_default_hot")} == {
+            ("gene16_paper_mean", "gene16_scaled", "gene16_default", "gene16_l2s", "gene16_paper_mean_hot")} == {
         "gene16_paper_mean": "mean", "gene16_scaled": "scaled", "gene16_default": "scaled", "gene16_l2s": "sum",
-        "gene16_default_hot": "scaled"}
+        "gene16_paper_mean_hot": "mean"}
     assert all(v["nmse"] > 0 for case in ("gene16_default", "gene16_l2s") for k, v in numbers[case].items()
                if isinstance(v, dict))
 
