@@ -132,6 +132,9 @@ def table2(ctx):
     if not all("paper_units" in c.get("scratch", {}) for c in ft.values()):
         ft = {}  # written before the test curves recorded the paper's units: not comparable
     rows, notes = [], []
+    if not ft:
+        notes.append("the Lorenz10, Kuramoto and exp. 4 gene columns need experiment 4's results with test "
+                     "curves in the paper's units (`results/finetune.json`), which this folder does not hold yet")
     if ft:
         scene = lorenz_choice(ft)
         for n in SIZES:
