@@ -1,0 +1,228 @@
+"""Time to accuracy: wall time for `mpnode train` to reach a validation nMSE, beside the same
+recipe in torch + torchdiffeq (issue 16, item 4).
+
+For each system a trajectory file is generated once (1000 trajectories, the built-in scene,
+as `mpnode generate` makes it; the same file for both sides).  Then, in turn and in fresh
+processes (as a user runs them):
+- mpnode: `mpnode.runs.train` (the function behind `mpnode train`) with the default recipe
+  and options, writing the model, log and checkpoint as the command does;
+- torch: benchmarks/tta_torch.py, the same recipe written in torch + torchdiffeq (run by
+  another interpreter: torch is no dependency of mpnode).
+Both report, after every epoch, the normalised MSE of the current weights on the same
+validation split (the `val_nmse` of mpnode's training log, computed the same way on the
+torch side), and stop at the first epoch whose nMSE is <= the last threshold, or at the
+time limit.  The clock starts before the training data are read (imports excluded, reported
+apart as startup) and stops at the end of that epoch's validation; an epoch is counted on
+both sides the same way.  Each run is one process; with --lock each run is its own
+exclusive block (`flock /work/gate.lock flock -x /work/cpu.lock`), the sides alternate
+and their order flips every repetition.
+
+    python benchmarks/bench_time_to_accuracy.py --torch-python /work/venv-peers/bin/python \\
+        [--systems coupled_pendulum,lorenz3] [--reps 2] [--threads 2] [--time-limit 600] \\
+        [--lock] [--data DIR] [--json OUT]
+
+The table gives, per threshold, the median seconds of each side ("> limit" when a side did
+not get there), their ratio torch / mpnode (the median of the per-repetition ratios), the
+epochs each side needed, and each side's epochs per second (so one sees whether the ratio
+comes from the speed of an epoch or from the number of epochs).
+"""
+import argparse
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+T_IMPORT = time.perf_counter()
+HERE = os.path.dirname(os.path.abspath(__file__))
+#: system (built-in scene) -> validation nMSE thresholds
+THRESHOLDS = {"coupled_pendulum": (0.01, 0.002), "lorenz3": (0.05, 0.01)}
+LOCK = ["flock", "/work/gate.lock", "flock", "-x", "/work/cpu.lock"]
+
+
+class Reached(Exception):
+    """Raised from the progress callback: every threshold is reached (or the time is up)."""
+
+
+def mpnode_worker(data, thresholds, time_limit):
+    """Train with `mpnode.runs.train`'s defaults until the thresholds or the limit; print RESULT."""
+    from mpnode import runs
+
+    history, reached = [], {}
+    state = {"status": "epochs"}
+    t_ready = time.perf_counter()
+
+    def progress(record):
+        now = time.perf_counter() - t0
+        nmse = record["val_nmse"]
+        history.append([record["epoch"], round(now, 4), nmse])
+        for thr in thresholds:
+            if thr not in reached and nmse is not None and nmse <= thr and record["epoch"] > 0:
+                reached[thr] = (record["epoch"], now)
+        if len(reached) == len(thresholds):
+            state["status"] = "reached"
+            raise Reached
+        if now >= time_limit:
+            state["status"] = "time_limit"
+            raise Reached
+
+    with tempfile.TemporaryDirectory() as out:
+        t0 = time.perf_counter()
+        try:
+            runs.train([data], os.path.join(out, "model.h5"), {"time_limit": time_limit + 60}, progress=progress)
+        except Reached:
+            pass
+    return {"side": "mpnode", "data": os.path.abspath(data), "status": state["status"],
+            "startup_seconds": t_ready - T_IMPORT, "reached": {f"{k:g}": {"epoch": e, "seconds": s}
+                                                              for k, (e, s) in reached.items()},
+            "history": history}
+
+
+def run_side(side, data, thresholds, args):
+    """One run in a fresh process (inside an exclusive block with --lock): its RESULT record."""
+    env = dict(os.environ)
+    for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        env[var] = str(args.threads)
+    thr = ",".join(f"{t:g}" for t in thresholds)
+    if side == "mpnode":
+        cmd = [sys.executable, os.path.abspath(__file__), "--worker", data, "--thresholds", thr,
+               "--time-limit", str(args.time_limit)]
+    else:
+        cmd = [args.torch_python, os.path.join(HERE, "tta_torch.py"), data, "--thresholds", thr,
+               "--time-limit", str(args.time_limit), "--threads", str(args.threads)]
+    if args.lock:
+        cmd = LOCK + cmd
+    wait = time.time()
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")]
+    if out.returncode or not lines:
+        raise SystemExit(f"{side} run failed ({out.returncode}):\n{out.stderr[-3000:]}")
+    record = json.loads(lines[-1][len("RESULT "):])
+    record.update(threads=args.threads, finished=time.strftime("%H:%M:%S"), block_seconds=time.time() - wait)
+    return record
+
+
+def data_file(folder, scene):
+    """The scene's file in ``folder``, generated (1000 trajectories) if missing."""
+    sys.path.insert(0, HERE)
+    from bench_epoch import data_file as make
+
+    return make(folder, scene)
+
+
+def summary(runs_, system, thresholds, limit):
+    """Rows per threshold: medians per side, the median ratio, epochs, epochs per second."""
+    rows = []
+    for thr in thresholds:
+        key = f"{thr:g}"
+        row = {"system": system, "threshold": thr}
+        pairs = {}
+        for side in ("mpnode", "torch"):
+            mine = [r for r in runs_ if r["side"] == side]
+            hits = [r["reached"].get(key) for r in mine]
+            secs = [h["seconds"] if h else math.inf for h in hits]
+            row[f"{side}_seconds"] = statistics.median(secs) if secs else None
+            row[f"{side}_epochs"] = sorted({h["epoch"] for h in hits if h})
+            row[f"{side}_epochs_per_s"] = statistics.median(epoch_rate(r, key) for r in mine) if mine else None
+            row[f"{side}_startup_s"] = statistics.median(r["startup_seconds"] for r in mine) if mine else None
+            pairs[side] = secs
+        ratios = [t / m for m, t in zip(pairs["mpnode"], pairs["torch"]) if math.isfinite(m)]
+        row["ratio"] = statistics.median(ratios) if ratios else None
+        row["limit"] = limit
+        rows.append(row)
+    return rows
+
+
+def epoch_rate(record, key):
+    """Epochs per second after epoch 0 (which holds reading, setup and the first validation),
+    up to the threshold's epoch or the end of the run."""
+    h = record["history"]
+    hit = record["reached"].get(key)
+    end = next(i for i, e in enumerate(h) if e[0] == hit["epoch"]) if hit else len(h) - 1
+    return (h[end][0] - h[0][0]) / (h[end][1] - h[0][1]) if end > 0 else float("nan")
+
+
+def fmt_seconds(s, limit):
+    return f"> {limit:g}" if s is None or not math.isfinite(s) else f"{s:.1f}"
+
+
+def table(rows):
+    out = ["| system | val nMSE <= | mpnode s | torch s | torch / mpnode | epochs mpnode / torch "
+           "| epochs/s mpnode / torch |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        ratio = "-" if r["ratio"] is None else f"{r['ratio']:.1f}x"
+        if r["ratio"] is not None and not math.isfinite(r["ratio"]):
+            ratio = f"> {r['limit'] / r['mpnode_seconds']:.1f}x"
+        ep = f"{','.join(map(str, r['mpnode_epochs'])) or '-'} / {','.join(map(str, r['torch_epochs'])) or '-'}"
+        rate = f"{r['mpnode_epochs_per_s']:.2f} / {r['torch_epochs_per_s']:.2f}"
+        out.append(f"| {r['system']} | {r['threshold']:g} | {fmt_seconds(r['mpnode_seconds'], r['limit'])} | "
+                   f"{fmt_seconds(r['torch_seconds'], r['limit'])} | {ratio} | {ep} | {rate} |")
+    return "\n".join(out)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--systems", default=",".join(THRESHOLDS))
+    ap.add_argument("--reps", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--time-limit", type=float, default=600.0, help="seconds per run")
+    ap.add_argument("--torch-python", default=os.environ.get("TORCH_PYTHON", "python3"),
+                    help="an interpreter with torch, torchdiffeq, h5py and numpy")
+    ap.add_argument("--sides", default="mpnode,torch")
+    ap.add_argument("--lock", action="store_true", help="each run inside flock gate + exclusive cpu lock")
+    ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "mpnode-bench-data"))
+    ap.add_argument("--json", help="write every run's record and the summary here")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--thresholds", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.worker:
+        thresholds = [float(t) for t in args.thresholds.split(",")]
+        print("RESULT " + json.dumps(mpnode_worker(args.worker, thresholds, args.time_limit)), flush=True)
+        return
+    os.makedirs(args.data, exist_ok=True)
+    sides = args.sides.split(",")
+    records, rows = [], []
+    for system in args.systems.split(","):
+        data = data_file(args.data, system)
+        mine = []
+        for rep in range(args.reps):
+            for side in (sides if rep % 2 == 0 else sides[::-1]):
+                r = run_side(side, data, THRESHOLDS[system], args)
+                r.update(system=system, rep=rep)
+                mine.append(r)
+                print(f"{system} rep {rep} {side}: {r['status']}, reached {r['reached']}, "
+                      f"{len(r['history']) - 1} epochs", file=sys.stderr, flush=True)
+                if args.json:
+                    save(args.json, records + mine, rows)
+        records += mine
+        rows += summary(mine, system, THRESHOLDS[system], args.time_limit)
+    if args.json:
+        save(args.json, records, rows)
+    print(table(rows))
+
+
+def save(path, records, rows):
+    with open(path + ".tmp", "w") as f:
+        json.dump({"runs": records, "summary": rows, "machine": machine()}, f, indent=1)
+    os.replace(path + ".tmp", path)
+
+
+def machine():
+    """The CPU and platform, for the README."""
+    import platform
+
+    model = platform.processor() or "unknown"
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), model)
+    except OSError:
+        pass
+    return {"cpus": os.cpu_count(), "processor": model, "platform": platform.platform(),
+            "python": platform.python_version()}
+
+
+if __name__ == "__main__":
+    main()
