@@ -20,6 +20,7 @@ and their order flips every repetition.
     python benchmarks/bench_time_to_accuracy.py --torch-python /work/venv-peers/bin/python \\
         [--systems coupled_pendulum,lorenz3] [--reps 2] [--threads 2] [--time-limit 600] \\
         [--lock] [--data DIR] [--json OUT]
+    python benchmarks/bench_time_to_accuracy.py --report OUT --time-limit 600   # the table again
 
 The table gives, per threshold, the median seconds of each side ("> limit" when a side did
 not get there), their ratio torch / mpnode (the median of the per-repetition ratios), the
@@ -132,8 +133,33 @@ def summary(runs_, system, thresholds, limit):
         ratios = [t / m for m, t in zip(pairs["mpnode"], pairs["torch"]) if math.isfinite(m)]
         row["ratio"] = statistics.median(ratios) if ratios else None
         row["limit"] = limit
+        row["torch_estimate_s"] = estimate(runs_, key)
         rows.append(row)
     return rows
+
+
+def estimate(runs_, key):
+    """When torch stopped at the limit but mpnode got there: torch's epoch-0 time plus the
+    epochs mpnode needed at torch's own epochs per second (both sides do the same arithmetic
+    from the same start, so they need about the same epochs: see `agreement`).  None otherwise."""
+    torch_runs = [r for r in runs_ if r["side"] == "torch"]
+    need = [r["reached"][key]["epoch"] for r in runs_ if r["side"] == "mpnode" and key in r["reached"]]
+    if not need or not torch_runs or any(key in r["reached"] for r in torch_runs):
+        return None
+    epochs = statistics.median(need)
+    return statistics.median(r["history"][0][1] + epochs / epoch_rate(r, key) for r in torch_runs)
+
+
+def agreement(runs_):
+    """(epoch, mpnode nMSE, torch nMSE, max relative difference up to it) at the last epoch both
+    sides of the first repetition logged: how closely the two trainings follow each other."""
+    first = {r["side"]: {e: n for e, _, n in r["history"]} for r in runs_ if r["rep"] == 0}
+    if set(first) != {"mpnode", "torch"}:
+        return None
+    common = sorted(set(first["mpnode"]) & set(first["torch"]))
+    rel = max(abs(first["torch"][e] / first["mpnode"][e] - 1) for e in common)
+    last = common[-1]
+    return last, first["mpnode"][last], first["torch"][last], rel
 
 
 def epoch_rate(record, key):
@@ -158,8 +184,11 @@ def table(rows):
             ratio = f"> {r['limit'] / r['mpnode_seconds']:.1f}x"
         ep = f"{','.join(map(str, r['mpnode_epochs'])) or '-'} / {','.join(map(str, r['torch_epochs'])) or '-'}"
         rate = f"{r['mpnode_epochs_per_s']:.2f} / {r['torch_epochs_per_s']:.2f}"
+        torch_s = fmt_seconds(r["torch_seconds"], r["limit"])
+        if r.get("torch_estimate_s"):
+            torch_s += f" (est. {r['torch_estimate_s']:.0f})"
         out.append(f"| {r['system']} | {r['threshold']:g} | {fmt_seconds(r['mpnode_seconds'], r['limit'])} | "
-                   f"{fmt_seconds(r['torch_seconds'], r['limit'])} | {ratio} | {ep} | {rate} |")
+                   f"{torch_s} | {ratio} | {ep} | {rate} |")
     return "\n".join(out)
 
 
@@ -175,33 +204,50 @@ def main():
     ap.add_argument("--lock", action="store_true", help="each run inside flock gate + exclusive cpu lock")
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "mpnode-bench-data"))
     ap.add_argument("--json", help="write every run's record and the summary here")
+    ap.add_argument("--report", help="only print the table of the runs saved in this --json file")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--thresholds", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.report:
+        with open(args.report) as f:
+            print(table(report(json.load(f)["runs"], args.time_limit)))
+        return
     if args.worker:
         thresholds = [float(t) for t in args.thresholds.split(",")]
         print("RESULT " + json.dumps(mpnode_worker(args.worker, thresholds, args.time_limit)), flush=True)
         return
     os.makedirs(args.data, exist_ok=True)
-    sides = args.sides.split(",")
-    records, rows = [], []
-    for system in args.systems.split(","):
-        data = data_file(args.data, system)
-        mine = []
-        for rep in range(args.reps):
+    sides, systems = args.sides.split(","), args.systems.split(",")
+    files = {system: data_file(args.data, system) for system in systems}
+    records = []
+    for rep in range(args.reps):  # every system once before the next repetition: a cut run still has each
+        for system in systems:
             for side in (sides if rep % 2 == 0 else sides[::-1]):
-                r = run_side(side, data, THRESHOLDS[system], args)
+                r = run_side(side, files[system], THRESHOLDS[system], args)
                 r.update(system=system, rep=rep)
-                mine.append(r)
+                records.append(r)
                 print(f"{system} rep {rep} {side}: {r['status']}, reached {r['reached']}, "
                       f"{len(r['history']) - 1} epochs", file=sys.stderr, flush=True)
                 if args.json:
-                    save(args.json, records + mine, rows)
-        records += mine
-        rows += summary(mine, system, THRESHOLDS[system], args.time_limit)
+                    save(args.json, records, [])
+    rows = report(records, args.time_limit)
     if args.json:
         save(args.json, records, rows)
     print(table(rows))
+
+
+def report(records, limit):
+    """The summary rows of every system in ``records`` (and how closely the sides agree, on stderr)."""
+    rows = []
+    for system in dict.fromkeys(r["system"] for r in records):
+        mine = [r for r in records if r["system"] == system]
+        rows += summary(mine, system, THRESHOLDS[system], limit)
+        agree = agreement(mine)
+        if agree:
+            rows[-1]["agreement"] = agree
+            print(f"{system}: validation nMSE at epoch {agree[0]}: mpnode {agree[1]:.6g}, torch {agree[2]:.6g} "
+                  f"(largest relative difference up to it {agree[3]:.2g})", file=sys.stderr, flush=True)
+    return rows
 
 
 def save(path, records, rows):
