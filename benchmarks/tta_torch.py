@@ -27,6 +27,9 @@ layouts.py), step by step, so that both sides do the same arithmetic from the sa
   above 100x the initial validation loss: back to the best weights and Adam state, learning
   rate halved, five in a row stop the run); learning rate halved after 500 epochs without a
   new best validation loss;
+- with --curriculum (mpnode's --horizon-curriculum), the first --curriculum-epochs epochs
+  train on consecutive windows of the first length (each from its own noisy true state, the
+  last one ending at T), the next on the second, the rest on the full horizon;
 - validation after every epoch: full-horizon rollouts of the validation split, normalised
   MSE as mpnode's Validator computes it (per-dimension variance of the validation states,
   error over steps 1..T, mean over dimensions).
@@ -59,6 +62,8 @@ def parse_args(argv=None):
     ap.add_argument("--method", default="rk4_classic", choices=["rk4_classic", "rk4"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--curriculum", default="", help="window lengths, e.g. 5,10 (mpnode's --horizon-curriculum)")
+    ap.add_argument("--curriculum-epochs", type=int, default=100)
     return ap.parse_args(argv)
 
 
@@ -141,6 +146,25 @@ def edges(indptr, indices, copies):
     return (indices[None, :] + off).reshape(-1), (dst1[None, :] + off).reshape(-1), inv
 
 
+def window_starts(horizon, window):
+    """mpnode.batches.window_starts: consecutive windows, one last window ending at T."""
+    if window >= horizon:
+        return [0]
+    starts = list(range(0, horizon - window + 1, window))
+    if starts[-1] + window < horizon:
+        starts.append(horizon - window)
+    return starts
+
+
+def windows(x, window):
+    """mpnode's Part.windows: (w+1, B * n_windows, N, dx), window j of trajectory b at b * n_windows + j."""
+    t1, b, n, dx = x.shape
+    starts = window_starts(t1 - 1, window)
+    w = min(window, t1 - 1)
+    stacked = np.stack([x[a:a + w + 1] for a in starts], axis=2)
+    return np.ascontiguousarray(stacked).reshape(w + 1, b * len(starts), n, dx)
+
+
 def epoch_batches(n, seed, epoch):
     """mpnode.batches.epoch_batches for one part: local index arrays, shuffled."""
     rng = np.random.default_rng([seed, 1, epoch])
@@ -198,7 +222,9 @@ class Run:
         tr, va = split(x.shape[0], args.seed)
         self.val_index = va
         mean, std = zscore_constants(x[tr])
-        self.train = torch.from_numpy(part(x[tr], mean, std, dtype, np.random.default_rng([args.seed, 3, 0])))
+        self.full = part(x[tr], mean, std, dtype, np.random.default_rng([args.seed, 3, 0]))
+        self.curriculum = [int(w) for w in args.curriculum.split(",") if w.strip()]
+        self.stage, self.train = None, None
         self.val = torch.from_numpy(part(x[va], mean, std, dtype))
         flat = self.val.reshape(-1, self.dx).double()
         self.val_var = flat.var(dim=0, unbiased=False).clamp_min(0)
@@ -225,7 +251,7 @@ class Run:
         self.field.use_graph(self.graph(b))
         x0 = x[0].reshape(b * self.n_nodes, self.dx)
         z0 = torch.cat([x0, torch.zeros(x0.shape[0], DM, dtype=x0.dtype)], dim=1)
-        return odeint(self.field, z0, self.ts, method=self.args.method)[:, :, :self.dx]
+        return odeint(self.field, z0, self.ts[:x.shape[0]], method=self.args.method)[:, :, :self.dx]
 
     def batch_loss(self, x):
         pred = self.rollout(x)
@@ -285,7 +311,16 @@ class Run:
         for g in self.opt.param_groups:
             g["lr"] = lr
 
+    def use_stage(self, epoch):
+        """mpnode's horizon curriculum: the training windows of epoch ``epoch``'s stage (1-based)."""
+        c = self.curriculum
+        stage = min((epoch - 1) // self.args.curriculum_epochs, len(c)) if c else 0
+        if stage != self.stage:
+            self.stage = stage
+            self.train = torch.from_numpy(self.full if stage >= len(c) else windows(self.full, c[stage]))
+
     def run_epoch(self):
+        self.use_stage(self.epoch + 1)
         for sel in epoch_batches(self.train.shape[1], self.args.seed, self.epoch + 1):
             problem = self.step(self.train[:, torch.from_numpy(sel)])
             if problem is not None:
@@ -341,7 +376,8 @@ def main():
     run = Run(args)
     status, reached, history = run.fit(thresholds)
     record = {"side": "torch", "data": os.path.abspath(args.data), "status": status, "threads": args.threads,
-              "method": args.method, "dtype": args.dtype, "startup_seconds": run.t0 - T_IMPORT,
+              "method": args.method, "dtype": args.dtype, "curriculum": run.curriculum,
+              "curriculum_epochs": args.curriculum_epochs, "startup_seconds": run.t0 - T_IMPORT,
               "val_index_sum": int(run.val_index.sum()), "n_val": int(len(run.val_index)),
               "reached": {f"{k:g}": {"epoch": e, "seconds": s} for k, (e, s) in reached.items()},
               "history": [[e, round(s, 4), n] for e, s, n in history],
