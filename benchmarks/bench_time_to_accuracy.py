@@ -63,7 +63,7 @@ def mpnode_worker(data, thresholds, time_limit, curriculum):
     def progress(record):
         now = time.perf_counter() - t0
         nmse = record["val_nmse"]
-        history.append([record["epoch"], round(now, 4), nmse])
+        history.append([record["epoch"], round(now, 4), nmse, round(time.process_time() - c0, 4)])
         for thr in thresholds:
             if thr not in reached and nmse is not None and nmse <= thr and record["epoch"] > 0:
                 reached[thr] = (record["epoch"], now)
@@ -75,7 +75,7 @@ def mpnode_worker(data, thresholds, time_limit, curriculum):
             raise Reached
 
     with tempfile.TemporaryDirectory() as out:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             runs.train([data], os.path.join(out, "model.h5"), {"time_limit": time_limit + 60, "curriculum": curriculum}, progress=progress)
         except Reached:
@@ -119,31 +119,53 @@ def data_file(folder, scene):
     return make(folder, scene)
 
 
-def summary(runs_, system, thresholds, limit):
-    """Rows per threshold: medians per side, the median ratio, epochs, epochs per second."""
+def summary(runs_, system, thresholds, limit, clock="wall"):
+    """Rows per threshold: medians per side, the median ratio, epochs, epochs per second, on the
+    ``clock`` ("wall", or "cpu": the process's CPU seconds, all threads)."""
+    col = CLOCKS[clock]
     rows = []
     for thr in thresholds:
         key = f"{thr:g}"
-        row = {"system": system, "threshold": thr}
+        row = {"system": system, "threshold": thr, "clock": clock, "limit": limit}
         pairs = {}
         for side in ("mpnode", "torch"):
             mine = [r for r in runs_ if r["side"] == side]
-            hits = [r["reached"].get(key) for r in mine]
-            secs = [h["seconds"] if h else math.inf for h in hits]
+            secs = [time_to(r, key, col) for r in mine]
             row[f"{side}_seconds"] = statistics.median(secs) if secs else None
-            row[f"{side}_epochs"] = sorted({h["epoch"] for h in hits if h})
-            row[f"{side}_epochs_per_s"] = statistics.median(epoch_rate(r, key) for r in mine) if mine else None
+            row[f"{side}_epochs"] = sorted({r["reached"][key]["epoch"] for r in mine if key in r["reached"]})
+            row[f"{side}_epochs_per_s"] = statistics.median(epoch_rate(r, key, col) for r in mine) if mine else None
             row[f"{side}_startup_s"] = statistics.median(r["startup_seconds"] for r in mine) if mine else None
             pairs[side] = secs
         ratios = [t / m for m, t in zip(pairs["mpnode"], pairs["torch"]) if math.isfinite(m)]
         row["ratio"] = statistics.median(ratios) if ratios else None
-        row["limit"] = limit
-        row["torch_estimate_s"] = estimate(runs_, key)
+        row["torch_estimate_s"] = estimate(runs_, key, col)
         rows.append(row)
     return rows
 
 
-def estimate(runs_, key):
+CLOCKS = {"wall": 1, "cpu": 3}
+
+
+def reached_row(record, key):
+    """The history row of the epoch that reached threshold ``key``, or None."""
+    hit = record["reached"].get(key)
+    return next(h for h in record["history"] if h[0] == hit["epoch"]) if hit else None
+
+
+def time_to(record, key, col):
+    row = reached_row(record, key)
+    return row[col] if row else math.inf
+
+
+def epoch_rate(record, key, col=1):
+    """Epochs per second after epoch 0 (which holds reading, setup and the first validation),
+    up to the threshold's epoch or the end of the run."""
+    h = record["history"]
+    end = reached_row(record, key) or h[-1]
+    return (end[0] - h[0][0]) / (end[col] - h[0][col]) if end[0] > h[0][0] else float("nan")
+
+
+def estimate(runs_, key, col=1):
     """When torch stopped at the limit but mpnode got there: torch's epoch-0 time plus the
     epochs mpnode needed at torch's own epochs per second (both sides do the same arithmetic
     from the same start, so they need about the same epochs: see `agreement`).  None otherwise."""
@@ -152,13 +174,13 @@ def estimate(runs_, key):
     if not need or not torch_runs or any(key in r["reached"] for r in torch_runs):
         return None
     epochs = statistics.median(need)
-    return statistics.median(r["history"][0][1] + epochs / epoch_rate(r, key) for r in torch_runs)
+    return statistics.median(r["history"][0][col] + epochs / epoch_rate(r, key, col) for r in torch_runs)
 
 
 def agreement(runs_):
     """(epoch, mpnode nMSE, torch nMSE, max relative difference up to it) at the last epoch both
     sides of the first repetition logged: how closely the two trainings follow each other."""
-    first = {r["side"]: {e: n for e, _, n in r["history"]} for r in runs_ if r["rep"] == 0}
+    first = {r["side"]: {h[0]: h[2] for h in r["history"]} for r in runs_ if r["rep"] == 0}
     if set(first) != {"mpnode", "torch"}:
         return None
     common = sorted(set(first["mpnode"]) & set(first["torch"]))
@@ -167,21 +189,13 @@ def agreement(runs_):
     return last, first["mpnode"][last], first["torch"][last], rel
 
 
-def epoch_rate(record, key):
-    """Epochs per second after epoch 0 (which holds reading, setup and the first validation),
-    up to the threshold's epoch or the end of the run."""
-    h = record["history"]
-    hit = record["reached"].get(key)
-    end = next(i for i, e in enumerate(h) if e[0] == hit["epoch"]) if hit else len(h) - 1
-    return (h[end][0] - h[0][0]) / (h[end][1] - h[0][1]) if end > 0 else float("nan")
-
-
 def fmt_seconds(s, limit):
     return f"> {limit:g}" if s is None or not math.isfinite(s) else f"{s:.1f}"
 
 
 def table(rows):
-    out = ["| system | val nMSE <= | mpnode s | torch s | torch / mpnode | epochs mpnode / torch "
+    clock = rows[0]["clock"] if rows else "wall"
+    out = [f"| system | val nMSE <= | mpnode s ({clock}) | torch s ({clock}) | torch / mpnode | epochs mpnode / torch "
            "| epochs/s mpnode / torch |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         ratio = "-" if r["ratio"] is None else f"{r['ratio']:.1f}x"
@@ -209,6 +223,8 @@ def main():
     ap.add_argument("--lock", action="store_true", help="each run inside flock gate + exclusive cpu lock")
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "mpnode-bench-data"))
     ap.add_argument("--json", help="write every run's record and the summary here")
+    ap.add_argument("--clock", default="wall", choices=sorted(CLOCKS),
+                    help="the table's seconds: wall, or the processes' CPU time (for runs on a shared machine)")
     ap.add_argument("--report", help="only print the table of the runs saved in this --json file")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--thresholds", help=argparse.SUPPRESS)
@@ -216,7 +232,7 @@ def main():
     args = ap.parse_args()
     if args.report:
         with open(args.report) as f:
-            print(table(report(json.load(f)["runs"], args.time_limit)))
+            print(table(report(json.load(f)["runs"], args.time_limit, args.clock)))
         return
     if args.worker:
         thresholds = [float(t) for t in args.thresholds.split(",")]
@@ -237,18 +253,18 @@ def main():
                       f"{len(r['history']) - 1} epochs", file=sys.stderr, flush=True)
                 if args.json:
                     save(args.json, records, [])
-    rows = report(records, args.time_limit)
+    rows = report(records, args.time_limit, args.clock)
     if args.json:
         save(args.json, records, rows)
     print(table(rows))
 
 
-def report(records, limit):
+def report(records, limit, clock="wall"):
     """The summary rows of every system in ``records`` (and how closely the sides agree, on stderr)."""
     rows = []
     for system in dict.fromkeys(r["system"] for r in records):
         mine = [r for r in records if r["system"] == system]
-        rows += summary(mine, system, THRESHOLDS[system], limit)
+        rows += summary(mine, system, THRESHOLDS[system], limit, clock)
         agree = agreement(mine)
         if agree:
             rows[-1]["agreement"] = agree
