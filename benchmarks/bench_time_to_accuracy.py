@@ -225,14 +225,14 @@ def main():
     ap.add_argument("--json", help="write every run's record and the summary here")
     ap.add_argument("--clock", default="wall", choices=sorted(CLOCKS),
                     help="the table's seconds: wall, or the processes' CPU time (for runs on a shared machine)")
-    ap.add_argument("--report", help="only print the table of the runs saved in this --json file")
+    ap.add_argument("--report", help="only print the table of the runs saved in these --json files (comma "
+                    "separated; the thresholds are applied again to each run's history)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--thresholds", help=argparse.SUPPRESS)
     ap.add_argument("--curriculum", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.report:
-        with open(args.report) as f:
-            print(table(report(json.load(f)["runs"], args.time_limit, args.clock)))
+        print(table(report(load_runs(args.report.split(",")), args.time_limit, args.clock)))
         return
     if args.worker:
         thresholds = [float(t) for t in args.thresholds.split(",")]
@@ -271,6 +271,22 @@ def report(records, limit, clock="wall"):
             print(f"{system}: validation nMSE at epoch {agree[0]}: mpnode {agree[1]:.6g}, torch {agree[2]:.6g} "
                   f"(largest relative difference up to it {agree[3]:.2g})", file=sys.stderr, flush=True)
     return rows
+
+
+def load_runs(paths):
+    """The runs of several --json files, each run's ``reached`` recomputed from its history for
+    THRESHOLDS (the first epoch after 0 whose validation nMSE is <= each)."""
+    records = []
+    for path in paths:
+        with open(path) as f:
+            records += json.load(f)["runs"]
+    for r in records:
+        r["reached"] = {}
+        for thr in THRESHOLDS[r["system"]]:
+            hit = next((h for h in r["history"][1:] if h[2] is not None and h[2] <= thr), None)
+            if hit:
+                r["reached"][f"{thr:g}"] = {"epoch": hit[0], "seconds": hit[1]}
+    return records
 
 
 def save(path, records, rows):
