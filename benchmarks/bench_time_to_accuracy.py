@@ -203,7 +203,8 @@ def table(rows):
         if r["ratio"] is not None and not math.isfinite(r["ratio"]):
             ratio = f"> {r['limit'] / r['mpnode_seconds']:.1f}x"
         ep = f"{','.join(map(str, r['mpnode_epochs'])) or '-'} / {','.join(map(str, r['torch_epochs'])) or '-'}"
-        rate = f"{r['mpnode_epochs_per_s']:.2f} / {r['torch_epochs_per_s']:.2f}"
+        rate = " / ".join("-" if r[f"{side}_epochs_per_s"] is None else f"{r[f'{side}_epochs_per_s']:.2f}"
+                          for side in ("mpnode", "torch"))
         torch_s = fmt_seconds(r["torch_seconds"], r["limit"])
         if r.get("torch_estimate_s"):
             torch_s += f" (est. {r['torch_estimate_s']:.0f})"
