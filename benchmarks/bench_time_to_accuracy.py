@@ -5,7 +5,8 @@ For each system a trajectory file is generated once (1000 trajectories, the buil
 as `mpnode generate` makes it; the same file for both sides).  Then, in turn and in fresh
 processes (as a user runs them):
 - mpnode: `mpnode.runs.train` (the function behind `mpnode train`) with the default recipe
-  and options, writing the model, log and checkpoint as the command does;
+  and options (Lorenz3 adds the horizon curriculum `mpnode train --help` advises for chaotic
+  systems, CURRICULUM below), writing the model, log and checkpoint as the command does;
 - torch: benchmarks/tta_torch.py, the same recipe written in torch + torchdiffeq (run by
   another interpreter: torch is no dependency of mpnode).
 Both report, after every epoch, the normalised MSE of the current weights on the same
@@ -19,8 +20,11 @@ and their order flips every repetition.
 
     python benchmarks/bench_time_to_accuracy.py --torch-python /work/venv-peers/bin/python \\
         [--systems coupled_pendulum,lorenz3] [--reps 2] [--threads 2] [--time-limit 600] \\
-        [--lock] [--data DIR] [--json OUT]
-    python benchmarks/bench_time_to_accuracy.py --report OUT --time-limit 600   # the table again
+        [--sides mpnode,torch] [--lock] [--data DIR] [--json OUT] [--clock wall|cpu]
+    python benchmarks/bench_time_to_accuracy.py --report OUT[,OUT2] --time-limit 600   # the table again
+
+--clock cpu tables the processes' CPU seconds instead of wall seconds: at --threads 1 on a
+machine shared with other jobs, that is what an epoch costs (the time limit stays on wall time).
 
 The table gives, per threshold, the median seconds of each side ("> limit" when a side did
 not get there), their ratio torch / mpnode (the median of the per-repetition ratios), the

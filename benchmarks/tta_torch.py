@@ -276,7 +276,7 @@ class Run:
         """One Adam step on batch x; returns a sentence when the step must be skipped."""
         self.opt.zero_grad(set_to_none=True)
         loss = self.batch_loss(x)
-        lv = float(loss)
+        lv = loss.detach().item()
         if not math.isfinite(lv):
             return "non-finite loss"
         if BLOWUP and lv > BLOWUP * self.ref_loss:
