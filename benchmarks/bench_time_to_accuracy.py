@@ -82,7 +82,8 @@ def mpnode_worker(data, thresholds, time_limit, curriculum):
     with tempfile.TemporaryDirectory() as out:
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            runs.train([data], os.path.join(out, "model.h5"), {"time_limit": time_limit + 60, "curriculum": curriculum}, progress=progress)
+            options = {"time_limit": time_limit + 60, "curriculum": curriculum}
+            runs.train([data], os.path.join(out, "model.h5"), options, progress=progress)
         except Reached:
             pass
     return {"side": "mpnode", "data": os.path.abspath(data), "status": state["status"],
