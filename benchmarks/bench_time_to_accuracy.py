@@ -23,6 +23,11 @@ and their order flips every repetition.
         [--sides mpnode,torch] [--lock] [--data DIR] [--json OUT] [--clock wall|cpu]
     python benchmarks/bench_time_to_accuracy.py --report OUT[,OUT2] --time-limit 600   # the table again
 
+--seeds makes repetition k use seed k on both sides.  Without it every repetition repeats seed
+0, which both sides run deterministically: it measures timing noise only.  On Lorenz3 the two
+sides part after ~100 epochs (rounding differences grow in the chaotic training; see the README),
+so the epochs a threshold takes vary from run to run and want several seeds.
+
 --clock cpu tables the processes' CPU seconds instead of wall seconds: at --threads 1 on a
 machine shared with other jobs, that is what an epoch costs (the time limit stays on wall time).
 
@@ -57,7 +62,7 @@ class Reached(Exception):
     """Raised from the progress callback: every threshold is reached (or the time is up)."""
 
 
-def mpnode_worker(data, thresholds, time_limit, curriculum):
+def mpnode_worker(data, thresholds, time_limit, curriculum, seed=0):
     """Train with `mpnode.runs.train`'s defaults until the thresholds or the limit; print RESULT."""
     from mpnode import runs
 
@@ -82,7 +87,7 @@ def mpnode_worker(data, thresholds, time_limit, curriculum):
     with tempfile.TemporaryDirectory() as out:
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            options = {"time_limit": time_limit + 60, "curriculum": curriculum}
+            options = {"time_limit": time_limit + 60, "curriculum": curriculum, "seed": seed}
             runs.train([data], os.path.join(out, "model.h5"), options, progress=progress)
         except Reached:
             pass
@@ -92,7 +97,7 @@ def mpnode_worker(data, thresholds, time_limit, curriculum):
             "history": history}
 
 
-def run_side(side, data, thresholds, curriculum, args):
+def run_side(side, data, thresholds, curriculum, args, seed=0):
     """One run in a fresh process (inside an exclusive block with --lock): its RESULT record."""
     env = dict(os.environ)
     for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
@@ -101,10 +106,10 @@ def run_side(side, data, thresholds, curriculum, args):
     windows = ["--curriculum", ",".join(map(str, curriculum))] if curriculum else []
     if side == "mpnode":
         cmd = [sys.executable, os.path.abspath(__file__), "--worker", data, "--thresholds", thr,
-               "--time-limit", str(args.time_limit)] + windows
+               "--time-limit", str(args.time_limit), "--seed", str(seed)] + windows
     else:
         cmd = [args.torch_python, os.path.join(HERE, "tta_torch.py"), data, "--thresholds", thr,
-               "--time-limit", str(args.time_limit), "--threads", str(args.threads)] + windows
+               "--time-limit", str(args.time_limit), "--threads", str(args.threads), "--seed", str(seed)] + windows
     if args.lock:
         cmd = LOCK + cmd
     wait = time.time()
@@ -237,6 +242,10 @@ def main():
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--thresholds", help=argparse.SUPPRESS)
     ap.add_argument("--curriculum", default="", help=argparse.SUPPRESS)
+    ap.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--seeds", action="store_true",
+                    help="repetition k trains with seed k (split, weights, noise, batch order) on both sides: "
+                         "samples the training's own spread in epochs, not only the timing noise")
     args = ap.parse_args()
     if args.report:
         print(table(report(load_runs(args.report.split(",")), args.time_limit, args.clock)))
@@ -244,7 +253,8 @@ def main():
     if args.worker:
         thresholds = [float(t) for t in args.thresholds.split(",")]
         curriculum = tuple(int(w) for w in args.curriculum.split(",") if w)
-        print("RESULT " + json.dumps(mpnode_worker(args.worker, thresholds, args.time_limit, curriculum)), flush=True)
+        record = mpnode_worker(args.worker, thresholds, args.time_limit, curriculum, args.seed)
+        print("RESULT " + json.dumps(record), flush=True)
         return
     os.makedirs(args.data, exist_ok=True)
     sides, systems = args.sides.split(","), args.systems.split(",")
@@ -253,8 +263,9 @@ def main():
     for rep in range(args.reps):  # every system once before the next repetition: a cut run still has each
         for system in systems:
             for side in (sides if rep % 2 == 0 else sides[::-1]):
-                r = run_side(side, files[system], THRESHOLDS[system], CURRICULUM[system], args)
-                r.update(system=system, rep=rep)
+                seed = rep if args.seeds else 0
+                r = run_side(side, files[system], THRESHOLDS[system], CURRICULUM[system], args, seed)
+                r.update(system=system, rep=rep, seed=seed)
                 records.append(r)
                 print(f"{system} rep {rep} {side}: {r['status']}, reached {r['reached']}, "
                       f"{len(r['history']) - 1} epochs", file=sys.stderr, flush=True)
