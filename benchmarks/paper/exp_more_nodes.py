@@ -40,7 +40,7 @@ def analyse(ctx):
 
     current = {s.name: s.key for s in exp_finetune.runs(ctx.mode)}
     models += [(n, "trained on Lorenz10") for n in ("lorenz10_scratch_500", "lorenz10_finetune_500")
-               if (ctx.result(n) or {}).get("key") == current[n]]
+               if n in current and (ctx.result(n) or {}).get("key") == current[n]]
     rows, numbers = [], {"run": run_line(res), "val_improvement_last_20pct": flatness(res)}
     for name, how in models:
         model = ctx.model(name)
