@@ -70,15 +70,19 @@ def test_a_plain_node_refuses_a_graph_of_another_size(quick_run):
 
 def test_finetune_curves_and_determinism(quick_run):
     numbers = json.loads((quick_run / "results" / "finetune.json").read_text())
-    assert set(numbers) == {"lorenz10_50", "lorenz10_100", "lorenz10_500", "gene64", "kuramoto_er"}
+    assert set(numbers) == {"lorenz10_50", "lorenz10_100", "lorenz10_500", "gene64", "kuramoto_er_50"}
     for case in numbers.values():
-        assert case["evaluated_at"] == [2, 4]  # test_points = 2 (and epoch 0 for fine-tuning: the source model)
-        assert case["test_curves"]["finetune"][0] == [0, case["zero_shot_nmse"]]
-        assert len(case["test_curves"]["scratch"]) == 2  # scratch's epoch-0 point is not a model fit starts from
-        assert set(case["status"].values()) == {"completed"}
+        ft, sc = case["finetune"], case["scratch"]
+        assert ft["nmse"]["curve"][0] == [0, ft["zero_shot_nmse"]]  # fine-tuning's epoch 0: the source model
+        assert len(sc["nmse"]["curve"]) == 2  # scratch's epoch-0 point is not a model fit starts from
+        for run in (ft, sc):
+            assert run["status"] == "completed"
+            assert len(run["paper_units"]["curve"]) == len(run["nmse"]["curve"])
+            assert run["paper_units"]["product"] > 0 and run["nmse"]["product"] > 0
     # in quick mode the three Lorenz10 sizes are the same 6 trajectories: separately trained (maybe in
     # different processes), the runs must agree exactly -- training is deterministic given its seed
-    curves = [numbers[f"lorenz10_{n}"]["test_curves"] for n in (50, 100, 500)]
+    curves = [[numbers[f"lorenz10_{n}"][who]["paper_units"]["curve"] for who in ("finetune", "scratch")]
+              for n in (50, 100, 500)]
     assert curves[0] == curves[1] == curves[2]
 
 

@@ -58,7 +58,7 @@ def cases(mode):
     for scene, panel, what, epochs, lrs in LORENZ_TARGETS:
         if mode.quick and scene != "lorenz10":
             continue
-        for n in sizes:
+        for n in SIZES if scene == "lorenz10" else sizes:  # quick: three sizes of the same 6 trajectories
             out.append((f"{scene}_{{}}_{n}", f"Lorenz3 -> Lorenz10 ({what}), {n} trajectories",
                         DataSpec(scene, mode.pick(n, 6), 0), DataSpec(scene, mode.pick(200, 5), 1),
                         exp_more_nodes.run_spec(mode), mode.pick(epochs, 4), lrs, panel, ("lorenz", n)))
