@@ -77,12 +77,12 @@ def finetune_cell(ft, who, unit="paper_units"):
 
 def lorenz_choice(ft):
     """The Lorenz variant whose fine-tune : scratch ratios are closest (in log) to the paper's 20x/12.5x/11.8x."""
-    def distance(scene):
-        cells = [ft.get(f"{scene}_{n}") for n in SIZES]
-        if not all(cells):
+    def distance(scene):  # mean over the sizes run
+        cells = [c for c in (ft.get(f"{scene}_{n}") for n in SIZES) if c]
+        if not cells:
             return math.inf
         return sum(abs(math.log((c["scratch"]["paper_units"]["product"] / c["finetune"]["paper_units"]["product"])
-                                / (c["paper"][1] / c["paper"][0]))) for c in cells)
+                                / (c["paper"][1] / c["paper"][0]))) for c in cells) / len(cells)
     return min((scene for scene, _ in LORENZ_VARIANTS), key=distance)
 
 
