@@ -184,7 +184,7 @@ def draw_figure(ctx, cs):
     plt = pyplot()
     panels = {}
     for pattern, label, train, _, _, _, lrs, panel, _ in cs:
-        title = label.split(",")[0]
+        title = label.rsplit(",", 1)[0]  # without the trajectory count
         panels.setdefault((panel, title), []).append(
             (f"{train.trajectories} traj.", ctx.result(finetune_name(pattern, lrs[0])),
              ctx.result(pattern.format("scratch"))))
