@@ -105,14 +105,14 @@ def model_curve(res, key="test_curve"):
 
     A point evaluated at epoch e is the best-validation model at e, i.e. the weights of the last
     strict validation improvement at or before e (fit's rule).  A scratch run's epoch-0 point is
-    dropped: it was evaluated before fit fitted the normalisation, so it is not the model fit starts from.
+    dropped (`common.test_curve`).
     """
     best, best_at, trained_to = float("inf"), 0, {}
     for r in res["history"]:
         if r["val_loss"] is not None and r["val_loss"] < best:
             best, best_at = r["val_loss"], r["epoch"]
         trained_to[r["epoch"]] = best_at
-    return [[trained_to.get(int(e), int(e)), v] for e, v in res[key] if e > 0 or res["spec"]["init_from"]]
+    return [[trained_to.get(int(e), int(e)), float(v)] for e, v in zip(*test_curve(res, key))]
 
 
 def efficiency(curve):

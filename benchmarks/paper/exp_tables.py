@@ -19,17 +19,22 @@ import json
 import math
 
 import exp_aggregation
+import exp_finetune
 import exp_quadrotor
-from common import main, paper_units, table
+from common import evaluate_nmse, main, paper_units, table
 
 NAME = "tables"
 TITLE = "12. The paper's Tables 1 and 2, cell by cell"
-#: Table 1 of the paper: (cell, our run, our test set key in aggregation.json, paper)
-TABLE1 = (("validation, BA (training graphs)", "seen", 0.0051), ("test, BA (unseen graphs)", "ba", 0.0045),
-          ("test, ER (unseen)", "er", 0.0026), ("test, WS (unseen)", "ws", 0.0023))
+#: Table 1's cells: (label, test-set key of exp_aggregation; the paper's values are exp_aggregation.PAPER)
+TABLE1 = (("validation, BA (training graphs)", "seen"), ("test, BA (unseen graphs)", "ba"),
+          ("test, ER (unseen)", "er"), ("test, WS (unseen)", "ws"))
 LORENZ_VARIANTS = (("lorenz10", "coupling 0.01 (Fig. 5a)"), ("lorenz10_medium", "coupling 1 (Fig. 5d)"),
                    ("lorenz10_high", "coupling 5 (Fig. 5d)"), ("lorenz10_10s", "coupling 0.01, 10 s (Fig. 5e)"))
-SIZES = (50, 100, 500)
+SIZES = exp_finetune.SIZES
+#: Table 2's gene and quadrotor columns: (MP-NODE fine-tuned, scratch, L2S), from the experiments that own them
+GENE = tuple(exp_aggregation.PAPER_TABLE2.get(n) for n in ("gene64_ft_default", "gene64_scratch_default",
+                                                           "gene64_ft_l2s"))
+QUAD = (exp_quadrotor.PAPER["q6_ft_m20"], None, exp_quadrotor.PAPER["q6_ft_l2s"])
 
 
 def runs(mode):
@@ -61,18 +66,15 @@ def table1(ctx):
               ("MP-NODE, paper's settings, 4000 epochs (exp. 2)", topo, sets),
               ("MP-NODE, paper's settings, hot-spot data (exp. 7)", agg.get("gene16_paper_mean_hot"), hot))
     rows = []
-    for cell, key, paper in TABLE1:
+    for cell, key in TABLE1:
+        paper = exp_aggregation.PAPER["mpnode"][key]
         for who, numbers, keys in models:
             if numbers and keys[key] in numbers:
                 ours = numbers[keys[key]]["zscore_mse"]
                 rows.append([cell, who, ours, paper, verdict(ours, paper)])
-    l2s = agg["gene16_l2s"][sets["seen"]]["zscore_mse"]
-    rows.append(["validation, BA (training graphs)", "L2S (exp. 7)", l2s, 0.0106, verdict(l2s, 0.0106)])
+    l2s, paper = agg["gene16_l2s"][sets["seen"]]["zscore_mse"], exp_aggregation.PAPER["l2s"]["seen"]
+    rows.append(["validation, BA (training graphs)", "L2S (exp. 7)", l2s, paper, verdict(l2s, paper)])
     return table(["cell", "model", "ours (MSE per step, z-scored)", "paper", "verdict"], rows)
-
-
-def finetune_cell(ft, who, unit="paper_units"):
-    return ft[who][unit]["product"] if ft and who in ft else None
 
 
 def lorenz_choice(ft):
@@ -107,8 +109,6 @@ def cached_paper_units(ctx, name, test):
     curve = res["test_curve"]
     best = min(range(len(curve)), key=lambda i: curve[i][1])
     model, traj = ctx.model(name), ctx.data(test)
-    from common import evaluate_nmse
-
     loss = paper_units(traj, evaluate_nmse(model, traj).predictions)
     note = "" if best == len(curve) - 1 else " (minimum before the final model)"
     return loss * max(curve[best][0], 1), note
@@ -137,20 +137,14 @@ def table2(ctx):
                      "curves in the paper's units (`results/finetune.json`), which this folder does not hold yet")
     if ft:
         scene = lorenz_choice(ft)
-        for n in SIZES:
-            c = ft.get(f"{scene}_{n}")
+        cases = [(f"Lorenz10 ds={n} ({scene})", f"{scene}_{n}") for n in SIZES]
+        cases += [(f"Kuramoto ds={n}", f"kuramoto_er_{n}") for n in SIZES]
+        cases += [("Gene, paper's settings (exp. 4)", "gene64")]
+        for label, key in cases:
+            c = ft.get(key)
             if c:
-                rows.append(column(f"Lorenz10 ds={n} ({scene})", finetune_cell(c, "finetune"),
+                rows.append(column(label, c["finetune"]["paper_units"]["product"],
                                    c["scratch"]["paper_units"]["product"], None, (*c["paper"], None)))
-        for n in SIZES:
-            c = ft.get(f"kuramoto_er_{n}")
-            if c:
-                rows.append(column(f"Kuramoto ds={n}", finetune_cell(c, "finetune"),
-                                   c["scratch"]["paper_units"]["product"], None, (*c["paper"], None)))
-        c = ft.get("gene64")
-        if c:
-            rows.append(column("Gene, paper's settings (exp. 4)", finetune_cell(c, "finetune"),
-                               c["scratch"]["paper_units"]["product"], None, (12.53, 28.0, 46.64)))
     gene_test = exp_aggregation.gene64_runs(ctx.mode)[0][2].test
     units = {n: cached_paper_units(ctx, n, gene_test) for n in ("gene64_ft_default", "gene64_scratch_default",
                                                                  "gene64_ft_l2s")}
@@ -159,9 +153,8 @@ def table2(ctx):
     notes += [f"`{n}`{note}" for n, (_, note) in units.items() if note]
     v = {n: u for n, (u, _) in units.items()}
     rows.append(column("Gene, defaults + L2S (exp. 7)", v["gene64_ft_default"], v["gene64_scratch_default"],
-                       v["gene64_ft_l2s"], (12.53, 28.0, 46.64)))
-    rows.append(column("Quadrotors 3 -> 6 (exp. 9)", v["q6_ft_m20"], v["q6_scratch_m20"], v["q6_ft_l2s"],
-                       (236.0, None, 476.0)))
+                       v["gene64_ft_l2s"], GENE))
+    rows.append(column("Quadrotors 3 -> 6 (exp. 9)", v["q6_ft_m20"], v["q6_scratch_m20"], v["q6_ft_l2s"], QUAD))
     text = table(["column", "MP-NODE fine-tuned: ours (paper)", "MP-NODE scratch: ours (paper)",
                   "L2S fine-tuned: ours (paper)", "scratch : fine-tuned", "fine-tuning beats scratch",
                   "L2S : MP-NODE, fine-tuned"], rows)
