@@ -69,7 +69,7 @@ class Scene:
 
 
 def _lorenz(k, coupling, level, horizon=50):
-    span = "" if horizon == 50 else f", {horizon * 0.05:g} s per trajectory"
+    span = "" if horizon == 50 else f", {horizon * Scene.dt:g} s per trajectory"
     return Scene(f"lorenz{k}{level}", f"{k} Lorenz oscillators, linear coupling ||H||_F = {coupling:g}{span}",
                  "lorenz", GraphSpec("complete", k), {"coupling": coupling}, horizon=horizon)
 
