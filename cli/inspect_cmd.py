@@ -41,7 +41,8 @@ def _model_text(file, s):
              f"sizes:       dx={s['state_dim']}, du={s['control_dim']}, dm={s['message_dim']}, H={s['hidden']}, "
              f"{s['parameters']} parameters ({s['dtype']})",
              f"messages:    {agg}" + (", self-messages" if s["self_messages"] else "")
-             + (", clamped to zero" if s["zero_messages"] else ""),
+             + (", clamped to zero" if s["zero_messages"] else "")
+             + (", linear aggregate path (W_agg)" if s["linear_aggregate"] else ""),
              f"integration: RK4, dt={s['dt']:g}, {s['substeps']} substep(s) per dt",
              "arrays:      " + ", ".join(f"{k} {v}" for k, v in s["arrays"].items()),
              "attributes:  " + ("" if s["attrs"] else "none")]

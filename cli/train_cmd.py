@@ -218,6 +218,10 @@ def print_validation(result, datasets, sources):
 @click.option("--aggregate", "aggregation", type=click.Choice(["mean", "sum", "scaled"]),
               help="How a node combines what its neighbours send: mean (the paper's), sum, or scaled (the sum over "
                    "the training graphs' mean in-degree).  Default: mean (mpnode), sum (l2s).")
+@click.option("--linear-aggregate", is_flag=True,
+              help="Also feed the aggregate straight to the field, around the MLP (k = MLP([x, u, m']) + m' W_agg, "
+                   "W_agg starting at 0): the field can then follow the larger aggregates of denser graphs than "
+                   "its training graphs (mpnode with messages; docs/model-format.md).")
 @click.option("--zero-messages", is_flag=True, help="Clamp messages to 0 (the paper's ablation).")
 @click.option("--self-messages", is_flag=True,
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")

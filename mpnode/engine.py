@@ -41,6 +41,9 @@ class FieldSpec:
         message_dim 0) or "node" (a plain neural ODE of a whole system of ``n_nodes``
         nodes; message_dim 0, the graph is ignored)
     aggregation : "mean", "sum" or "scaled" (the sum divided by ``mean_degree``)
+    linear_aggregate : (mpnode only) the field also adds m' @ W_agg, a path linear in the
+        aggregate m', so that a denser graph's larger aggregate is not squashed by the
+        MLP's tanh units (the gene dynamics are linear in the neighbour sum)
     """
 
     state_dim: int
@@ -55,6 +58,7 @@ class FieldSpec:
     aggregation: str = "mean"
     mean_degree: float = None
     n_nodes: int = None
+    linear_aggregate: bool = False
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -69,12 +73,14 @@ class FieldSpec:
             raise ValueError(f"a {self.kind} model has no message state (message_dim 0, no zero_messages)")
         if (self.kind == "node") != (self.n_nodes is not None):
             raise ValueError("n_nodes goes with kind 'node' (and only with it)")
+        if self.linear_aggregate and (self.kind != "mpnode" or not self.message_dim or self.zero_messages):
+            raise ValueError("linear_aggregate needs an mpnode model with messages (message_dim > 0, no zero_messages)")
 
     @property
     def dims(self):
-        """The kernels' (kind, dx, du, dm, H, self_msg, zero_msg) tuple (kinds mpnode and l2s)."""
+        """The kernels' (kind, dx, du, dm, H, self_msg, zero_msg, linear_agg) tuple (kinds mpnode and l2s)."""
         return (KINDS.index(self.kind), self.state_dim, self.control_dim, self.message_dim, self.hidden,
-                int(self.self_messages), int(self.zero_messages))
+                int(self.self_messages), int(self.zero_messages), int(self.linear_aggregate))
 
     @property
     def state_width(self):

@@ -15,7 +15,7 @@ FORMAT_VERSION = 2
 
 _INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "zero_messages", "self_messages")
 _SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator", "kind",
-                                 "aggregation", "mean_degree", "n_nodes"}
+                                 "aggregation", "mean_degree", "n_nodes", "linear_aggregate"}
 
 
 def _is_int(v):
@@ -78,8 +78,20 @@ class _Attrs:
             raise InputError(self.path, "zero_messages", "is 1", f"0 (a {kind} model has no messages)")
         self_msg = need("self_messages", flag, "0 or 1", default=0 if kind == "node" else None)
         dt = need("dt", lambda v: _is_number(v) and v > 0, "a number > 0")
+        linear = self.linear_aggregate(kind, dm, zero)
         return engine.FieldSpec(dx, du, dm, hidden, float(dt), substeps, bool(zero), bool(self_msg), kind,
-                                aggregation, mean_degree, n_nodes)
+                                aggregation, mean_degree, n_nodes, linear)
+
+    def linear_aggregate(self, kind, dm, zero):
+        """The linear aggregate path switch: 0 when absent (files before it, and every model
+        without it); 1 only for an mpnode model that has messages to aggregate."""
+        flag = lambda v: isinstance(v, (int, float)) and v in (0, 1)  # noqa: E731
+        on = bool(self.need("linear_aggregate", flag, "0 or 1", default=0))
+        if on and (kind != "mpnode" or not dm or zero):
+            raise InputError(self.path, "linear_aggregate", "is 1",
+                             "0 (the linear aggregate path needs an mpnode model with messages: message_dim > 0, "
+                             "zero_messages 0)")
+        return on
 
 
 def read_model(path):
@@ -149,6 +161,8 @@ def spec_attrs(spec):
         attrs["mean_degree"] = float(spec.mean_degree)
     if spec.n_nodes is not None:
         attrs["n_nodes"] = int(spec.n_nodes)
+    if spec.linear_aggregate:  # absent means off: files without the path stay as they were
+        attrs["linear_aggregate"] = 1
     return attrs
 
 

@@ -78,6 +78,8 @@ def make_field(spec, theta, graph):
         x, m = z[:, :dx], z[:, dx:]
         heard = np.zeros_like(m) if spec.zero_messages else aggregate(m)
         k = mlp(p, np.concatenate([x, u, heard], axis=1))
+        if spec.linear_aggregate:  # the path linear in the aggregate, around the MLP
+            k = k + heard @ p["W_agg"]
         if spec.zero_messages:
             k[:, dx:] = 0
         return k

@@ -1,4 +1,5 @@
-"""Every model kind and aggregation through the engine, in float64, on both drivers.
+"""Every model kind and aggregation (and the linear aggregate path) through the engine, in
+float64, on both drivers.
 
 - rollouts against the NumPy reference of engine_helpers (written from the model format);
 - the rollout's vector-Jacobian product with an *arbitrary* cotangent (the engine's one
@@ -19,6 +20,8 @@ KIND_SPECS = {
     "mpnode-mean": spec_(),
     "mpnode-sum": spec_(aggregation="sum"),
     "mpnode-scaled-self": spec_(aggregation="scaled", mean_degree=2.5, self_messages=True),
+    "mpnode-scaled-linear": spec_(aggregation="scaled", mean_degree=2.5, linear_aggregate=True),
+    "mpnode-mean-self-linear": spec_(self_messages=True, linear_aggregate=True),
     "l2s-sum": spec_(kind="l2s", message_dim=0),
     "l2s-mean-self": spec_(kind="l2s", message_dim=0, aggregation="mean", self_messages=True),
     "l2s-scaled": spec_(kind="l2s", message_dim=0, aggregation="scaled", mean_degree=3.0),
