@@ -42,7 +42,9 @@ def _model_text(file, s):
              f"{s['parameters']} parameters ({s['dtype']})",
              f"messages:    {agg}" + (", self-messages" if s["self_messages"] else "")
              + (", clamped to zero" if s["zero_messages"] else "")
-             + (", linear aggregate path (W_agg)" if s["linear_aggregate"] else ""),
+             + (", linear aggregate path (W_agg" + (f", reads the {s['linear_aggregation']} aggregate"
+                                                    if s["linear_aggregation"] else "") + ")"
+                if s["linear_aggregate"] else ""),
              f"integration: RK4, dt={s['dt']:g}, {s['substeps']} substep(s) per dt",
              "arrays:      " + ", ".join(f"{k} {v}" for k, v in s["arrays"].items()),
              "attributes:  " + ("" if s["attrs"] else "none")]

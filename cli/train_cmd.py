@@ -222,6 +222,11 @@ def print_validation(result, datasets, sources):
               help="Also feed the aggregate straight to the field, around the MLP (k = MLP([x, u, m']) + m' W_agg, "
                    "W_agg starting at 0): the field can then follow the larger aggregates of denser graphs than "
                    "its training graphs (mpnode with messages; docs/model-format.md).")
+@click.option("--linear-aggregation", type=click.Choice(["mean", "sum", "scaled"]),
+              help="The aggregate the linear path reads, when not the MLP's own (implies --linear-aggregate).  "
+                   "E.g. --aggregate mean --linear-aggregation scaled: the MLP sees the degree-free mean, which "
+                   "stays in range on denser graphs, and the degree reaches the field only through the linear "
+                   "path (scaled sum, as PNA's degree scalers).")
 @click.option("--zero-messages", is_flag=True, help="Clamp messages to 0 (the paper's ablation).")
 @click.option("--self-messages", is_flag=True,
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")

@@ -46,13 +46,19 @@ class Model:
     @classmethod
     def create(cls, state_dim, control_dim=0, message_dim=3, hidden=32, dt=0.05, substeps=1,
                zero_messages=False, self_messages=False, seed=0, dtype=np.float32, kind="mpnode",
-               aggregation=None, mean_degree=None, n_nodes=None, linear_aggregate=False):
+               aggregation=None, mean_degree=None, n_nodes=None, linear_aggregate=False, linear_aggregation=None):
         """A new model with Glorot-uniform weights and zero biases drawn from ``seed``.
 
         kind "l2s" and "node" have no messages (message_dim is ignored); "node" needs the
         system's n_nodes.  aggregation defaults to the kind's own (mean; sum for l2s).
         linear_aggregate (mpnode with messages): add the path m' W_agg, W_agg starting at 0.
+        linear_aggregation: that path's own aggregate (mean, sum or scaled; None: the MLP's);
+        it implies linear_aggregate.  mean_degree goes with "scaled" in either.
         """
+        linear_aggregate = bool(linear_aggregate or linear_aggregation)
+        if linear_aggregation is not None and linear_aggregation not in engine.AGGREGATIONS:
+            raise InputError("model", "linear_aggregation", f"is {linear_aggregation!r}",
+                             " or ".join(engine.AGGREGATIONS))
         if kind not in engine.KINDS:
             raise InputError("model", "kind", f"is {kind!r}", " or ".join(engine.KINDS))
         if linear_aggregate and (kind != "mpnode" or not message_dim or zero_messages):
@@ -65,7 +71,8 @@ class Model:
         spec = engine.FieldSpec(state_dim, control_dim, message_dim, hidden, float(dt), int(substeps),
                                 bool(zero_messages), bool(self_messages), kind, aggregation,
                                 None if mean_degree is None else float(mean_degree),
-                                None if n_nodes is None else int(n_nodes), bool(linear_aggregate))
+                                None if n_nodes is None else int(n_nodes), bool(linear_aggregate),
+                                linear_aggregation)
         return cls(layouts.glorot_init(spec, seed=seed, dtype=dtype), spec, attrs={"seed": seed})
 
     @classmethod
@@ -161,7 +168,7 @@ class Model:
         return {"kind": s.kind, "state_dim": s.state_dim, "control_dim": s.control_dim,
                 "message_dim": s.message_dim, "hidden": s.hidden, "n_nodes": s.n_nodes,
                 "aggregation": s.aggregation, "mean_degree": s.mean_degree,
-                "linear_aggregate": s.linear_aggregate, "dt": s.dt, "substeps": s.substeps,
+                "linear_aggregate": s.linear_aggregate, "linear_aggregation": s.linear_aggregation, "dt": s.dt, "substeps": s.substeps,
                 "self_messages": s.self_messages, "zero_messages": s.zero_messages, "dtype": str(self.dtype),
                 "parameters": int(self.theta.size),
                 "arrays": {name: list(a.shape) for name, a in self.params.items()},

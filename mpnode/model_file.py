@@ -15,7 +15,8 @@ FORMAT_VERSION = 2
 
 _INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "zero_messages", "self_messages")
 _SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator", "kind",
-                                 "aggregation", "mean_degree", "n_nodes", "linear_aggregate"}
+                                 "aggregation", "mean_degree", "n_nodes", "linear_aggregate",
+                                 "linear_aggregation"}
 
 
 def _is_int(v):
@@ -57,8 +58,9 @@ class _Attrs:
         aggregation = need("aggregation", lambda v: isinstance(v, str) and v in aggs,
                            " or ".join(aggs) + " (the aggregations this version knows)",
                            default=engine.default_aggregation(kind))
+        linear = self.linear_aggregation(aggs)
         mean_degree = None
-        if aggregation == "scaled":
+        if "scaled" in (aggregation, linear):
             mean_degree = float(need("mean_degree", lambda v: _is_number(v) and v > 0,
                                      "a number > 0 (the training graphs' mean in-degree)"))
         n_nodes = None
@@ -78,9 +80,19 @@ class _Attrs:
             raise InputError(self.path, "zero_messages", "is 1", f"0 (a {kind} model has no messages)")
         self_msg = need("self_messages", flag, "0 or 1", default=0 if kind == "node" else None)
         dt = need("dt", lambda v: _is_number(v) and v > 0, "a number > 0")
-        linear = self.linear_aggregate(kind, dm, zero)
+        on = self.linear_aggregate(kind, dm, zero)
+        if linear is not None and not on:
+            raise InputError(self.path, "linear_aggregation", f"is {linear!r} without linear_aggregate 1",
+                             "no linear_aggregation, or linear_aggregate 1 (the path it feeds)")
         return engine.FieldSpec(dx, du, dm, hidden, float(dt), substeps, bool(zero), bool(self_msg), kind,
-                                aggregation, mean_degree, n_nodes, linear)
+                                aggregation, mean_degree, n_nodes, on, linear)
+
+    def linear_aggregation(self, aggs):
+        """The linear path's own aggregate, or None when absent (the path reads the MLP's)."""
+        if "linear_aggregation" not in self.a:
+            return None
+        return self.need("linear_aggregation", lambda v: isinstance(v, str) and v in aggs,
+                         " or ".join(aggs) + " (the aggregations this version knows)")
 
     def linear_aggregate(self, kind, dm, zero):
         """The linear aggregate path switch: 0 when absent (files before it, and every model
@@ -163,6 +175,8 @@ def spec_attrs(spec):
         attrs["n_nodes"] = int(spec.n_nodes)
     if spec.linear_aggregate:  # absent means off: files without the path stay as they were
         attrs["linear_aggregate"] = 1
+    if spec.linear_aggregation is not None:  # absent: the path reads the MLP's aggregate
+        attrs["linear_aggregation"] = spec.linear_aggregation
     return attrs
 
 

@@ -321,6 +321,9 @@ def test_version_2_files_of_every_kind_load_and_round_trip(tmp_path, kind, aggre
     ("mpnode", None, {"linear_aggregate": 1, "zero_messages": 1}, "linear_aggregate"),
     ("mpnode", None, {"linear_aggregate": 1, "message_dim": 0}, "linear_aggregate"),
     ("l2s", None, {"linear_aggregate": 1}, "linear_aggregate"),
+    ("mpnode", None, {"linear_aggregate": 1, "linear_aggregation": "max"}, "linear_aggregation"),
+    ("mpnode", None, {"linear_aggregation": "sum"}, "linear_aggregation"),
+    ("mpnode", None, {"linear_aggregate": 1, "linear_aggregation": "scaled"}, "mean_degree"),
 ])
 def test_version_2_files_that_break_a_rule_are_refused(tmp_path, kind, aggregation, extra, field):
     err = load_error(write_raw_v2(tmp_path / "m.h5", kind, aggregation, **extra))
@@ -340,6 +343,24 @@ def test_linear_aggregate_round_trips_and_files_without_it_load_as_off(tmp_path)
         assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
         with h5py.File(tmp_path / f"{name}2.h5", "r") as f:
             assert ("linear_aggregate" in f.attrs) == ("W_agg" in f["params"]) == (name == "on")
+
+
+def test_the_linear_paths_own_aggregation_round_trips(tmp_path):
+    """mean for the MLP, scaled for the linear path: the file records both and the mean degree."""
+    path = write_raw_v2(tmp_path / "m.h5", "mpnode", "mean", mean_degree=2.0, linear_aggregate=1,
+                        linear_aggregation="scaled")
+    m = Model.load(path)
+    assert (m.spec.aggregation, m.spec.linear_aggregation, m.spec.mean_degree) == ("mean", "scaled", 2.0)
+    m.save(tmp_path / "back.h5")
+    back = Model.load(tmp_path / "back.h5")
+    assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
+
+
+def test_create_takes_the_linear_aggregation_as_the_switch_and_refuses_unknown_ones():
+    m = Model.create(DX, message_dim=DM, linear_aggregation="scaled", mean_degree=3.0)
+    assert m.spec.linear_aggregate and m.spec.dims[-1] == 2 and "W_agg" in m.params
+    with pytest.raises(InputError, match="linear_aggregation"):
+        Model.create(DX, message_dim=DM, linear_aggregation="max")
 
 
 def test_a_file_with_the_switch_but_no_w_agg_is_refused(tmp_path):

@@ -22,6 +22,8 @@ SPECS = {
     "mpnode-scaled-zero": dict(message_dim=3, aggregation="scaled", mean_degree=2.0, zero_messages=True),
     "mpnode-sum-self": dict(message_dim=2, aggregation="sum", self_messages=True),
     "mpnode-scaled-linear": dict(message_dim=3, aggregation="scaled", mean_degree=2.0, linear_aggregate=True),
+    "mpnode-mean-linear-scaled": dict(message_dim=3, mean_degree=2.0, linear_aggregate=True,
+                                      linear_aggregation="scaled"),
     "l2s-sum": dict(kind="l2s", aggregation="sum"),
     "l2s-mean-self": dict(kind="l2s", aggregation="mean", self_messages=True),
     "node": dict(kind="node", n_nodes=N),

@@ -4,8 +4,10 @@ A node's state is z = [x, m] (dz = dx + dm).  What a node sends its neighbours i
 message m itself (the columns dx: of z), so nothing is computed before the neighbour
 sum; m' = weight * (sum over the row).  Parameters, flat in this order (row-major):
 W1 (din, H), b1 (H), W2 (H, H), b2 (H), W3 (H, dout), b3 (dout) with din = dx + du + dm
-and dout = dx + dm, then W_agg (dm, dout) when linear_agg is 1 (the linear aggregate
-path).  ``dims`` = (kind, dx, du, dm, H, self_msg, zero_msg, linear_agg).
+and dout = dx + dm, then W_agg (dm, dout) when linear_agg is 1 or 2 (the linear aggregate
+path).  ``dims`` = (kind, dx, du, dm, H, self_msg, zero_msg, linear_agg).  linear_agg 1: the
+path reads the MLP's aggregate m'; 2: it reads s_i m'_i, s_i = weight[M + i] (the weight
+array then has 2M entries; e.g. mean for the MLP, scaled sum for the path: s_i = deg_i / D).
 """
 import numpy as np
 from numba import njit
@@ -39,18 +41,34 @@ def unpack_agg(theta, din, H, dout, dm):
 
 
 @njit(**JIT)
-def linear_aggregate_forward(Wa, V, c, K):
-    """K += V[:, c:] Wa: the aggregate's path around the MLP (whose tanh units cannot follow
-    the larger aggregates of denser graphs; the gene dynamics are linear in them)."""
-    K += np.dot(np.ascontiguousarray(V[:, c:]), Wa)
+def linear_input(V, c, weight, own, i0):
+    """The linear path's input for rows i0..: V[:, c:] (the MLP's aggregate), each row r
+    times weight[M + i0 + r] when the path has its ``own`` aggregation (M = weight.size / 2)."""
+    Va = np.ascontiguousarray(V[:, c:])
+    if own:
+        off = weight.shape[0] // 2 + i0
+        for r in range(Va.shape[0]):
+            Va[r] *= weight[off + r]
+    return Va
 
 
 @njit(**JIT)
-def linear_aggregate_backward(Wa, V, c, GK, gWa, GV):
-    """VJP of linear_aggregate_forward: gWa += V[:, c:]^T GK, GV[:, c:] += GK Wa^T."""
-    Va = np.ascontiguousarray(V[:, c:])
-    gWa += np.dot(Va.T, GK)
-    GV[:, c:] += np.dot(GK, Wa.T)
+def linear_aggregate_forward(Wa, V, c, weight, own, i0, K):
+    """K += A Wa, A = linear_input(...): the aggregate's path around the MLP (whose tanh units
+    cannot follow the larger aggregates of denser graphs; the gene dynamics are linear in them)."""
+    K += np.dot(linear_input(V, c, weight, own, i0), Wa)
+
+
+@njit(**JIT)
+def linear_aggregate_backward(Wa, V, c, weight, own, i0, GK, gWa, GV):
+    """VJP of linear_aggregate_forward: gWa += A^T GK, GV[:, c:] += s * (GK Wa^T)."""
+    gWa += np.dot(linear_input(V, c, weight, own, i0).T, GK)
+    GA = np.dot(GK, Wa.T)
+    if own:
+        off = weight.shape[0] // 2 + i0
+        for r in range(GA.shape[0]):
+            GA[r] *= weight[off + r]
+    GV[:, c:] += GA
 
 
 @njit(**JIT)
@@ -94,7 +112,7 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
         aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, V, c)
     K = mlp_forward(theta, V, H1, H2, dx + dm)
     if linear_agg:
-        linear_aggregate_forward(unpack_agg(theta, c + dm, H, dx + dm, dm), V, c, K)
+        linear_aggregate_forward(unpack_agg(theta, c + dm, H, dx + dm, dm), V, c, weight, linear_agg == 2, i0, K)
     if zero_msg:
         K[:, dx:] = 0
     return K
@@ -115,8 +133,8 @@ def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gi
     c = dx + du
     if linear_agg:  # before the aggregate's cotangent is read out of GV below
         din, dout = c + dm, dx + dm
-        linear_aggregate_backward(unpack_agg(theta, din, H, dout, dm), V, c, GK, unpack_agg(gtheta, din, H, dout, dm),
-                                  GV)
+        linear_aggregate_backward(unpack_agg(theta, din, H, dout, dm), V, c, weight, linear_agg == 2, i0, GK,
+                                  unpack_agg(gtheta, din, H, dout, dm), GV)
     for r in range(i1 - i0):
         i = i0 + r
         zi = i - zoff
