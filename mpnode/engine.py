@@ -72,7 +72,8 @@ class FieldSpec:
         if self.aggregation not in AGGREGATIONS:
             raise ValueError(f"aggregation must be one of {AGGREGATIONS}, not {self.aggregation!r}")
         if self.linear_aggregation is not None and self.linear_aggregation not in AGGREGATIONS:
-            raise ValueError(f"linear_aggregation must be one of {AGGREGATIONS} or None, not {self.linear_aggregation!r}")
+            raise ValueError(f"linear_aggregation must be one of {AGGREGATIONS} or None, "
+                             f"not {self.linear_aggregation!r}")
         if self.linear_aggregation is not None and not self.linear_aggregate:
             raise ValueError("linear_aggregation goes with linear_aggregate (the path it feeds)")
         if ("scaled" in (self.aggregation, self.linear_aggregation)) != (self.mean_degree is not None):

@@ -3,9 +3,9 @@ the sweeps and the paper suite, so that each of them trains a model the same way
 
 Options are the command line's, with underscores: the model's (``kind``, ``message_dim``,
 ``hidden``, ``zero_messages``, ``self_messages``, ``aggregation``, ``linear_aggregate``,
-``linear_aggregation``, ``substeps``, ``dtype``) and every `TrainConfig` field, ``time_limit`` in seconds.  What the options
-leave unset comes from a recipe (mpnode.recipes: ``auto``, the best measured for the
-data's system, or ``paper``), then from the defaults.
+``linear_aggregation``, ``substeps``, ``dtype``) and every `TrainConfig` field, ``time_limit``
+in seconds.  What the options leave unset comes from a recipe (mpnode.recipes: ``auto``, the
+best measured for the data's system, or ``paper``), then from the defaults.
 """
 import dataclasses
 import os
@@ -22,7 +22,8 @@ from .train import TrainConfig, fit
 
 #: the model options and their defaults (TrainConfig's fields are the training options)
 MODEL_OPTIONS = {"kind": "mpnode", "message_dim": 3, "hidden": 32, "zero_messages": False, "self_messages": False,
-                 "aggregation": None, "linear_aggregate": False, "linear_aggregation": None, "substeps": 1, "dtype": "float32"}
+                 "aggregation": None, "linear_aggregate": False, "linear_aggregation": None, "substeps": 1,
+                 "dtype": "float32"}
 TRAIN_OPTIONS = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
 
 
