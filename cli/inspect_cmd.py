@@ -41,7 +41,8 @@ def _model_text(file, s):
     nodes = f", trained on systems of N={s['n_nodes']} nodes only" if s["n_nodes"] else ", any graph"
     agg = "" if s["kind"] == "node" else "aggregation " + _aggregation_text(s["aggregation"], s)
     own = s["linear_aggregation"]
-    linear = ", linear aggregate path (W_agg" + (f", reads the {_aggregation_text(own, s)} aggregate" if own else "")
+    linear = ", linear aggregate path (W_agg" + (f", reads the {_aggregation_text(own, s)} aggregate" if own else "") \
+        + (", adds to dx/dt only" if s["linear_target"] == "state" else "")
     lines = [f"file:        {file}",
              f"kind:        {s['kind']}{nodes}",
              f"sizes:       dx={s['state_dim']}, du={s['control_dim']}, dm={s['message_dim']}, H={s['hidden']}, "

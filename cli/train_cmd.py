@@ -227,6 +227,10 @@ def print_validation(result, datasets, sources):
                    "E.g. --aggregate mean --linear-aggregation scaled: the MLP sees the degree-free mean, which "
                    "stays in range on denser graphs, and the degree reaches the field only through the linear "
                    "path (scaled sum, as PNA's degree scalers).")
+@click.option("--linear-target", type=click.Choice(["all", "state"]),
+              help="What the linear path adds to: all (dx/dt and the messages' dm/dt; the default) or state "
+                   "(dx/dt alone, so the messages' own dynamics never hear the degree; implies "
+                   "--linear-aggregate).")
 @click.option("--zero-messages", is_flag=True, help="Clamp messages to 0 (the paper's ablation).")
 @click.option("--self-messages", is_flag=True,
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")

@@ -25,6 +25,8 @@ from .graph import Graph
 KINDS = ("mpnode", "l2s", "node")
 #: how a node combines what its neighbours send (model-format.md, "Aggregation")
 AGGREGATIONS = ("mean", "sum", "scaled")
+#: what the linear aggregate path adds to: every output, or dx/dt alone (model-format.md)
+LINEAR_TARGETS = ("all", "state")
 
 
 def default_aggregation(kind):
@@ -44,6 +46,9 @@ class FieldSpec:
     linear_aggregate : (mpnode only) the field also adds m' @ W_agg, a path linear in the
         aggregate m', so that a denser graph's larger aggregate is not squashed by the
         MLP's tanh units (the gene dynamics are linear in the neighbour sum)
+    linear_target : what that path adds to: "all" ([dx/dt, dm/dt], W_agg (dm, dx+dm)) or
+        "state" (dx/dt alone, W_agg (dm, dx): the messages' own dynamics then never hear
+        the degree, only the MLP's degree-free input)
     linear_aggregation : the aggregate that path reads when it is not the MLP's own m'
         ("mean", "sum" or "scaled"; None: the MLP's).  E.g. aggregation "mean" with
         linear_aggregation "scaled": the MLP sees a degree-free input that stays in range on
@@ -65,6 +70,7 @@ class FieldSpec:
     n_nodes: int = None
     linear_aggregate: bool = False
     linear_aggregation: str = None
+    linear_target: str = "all"
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -74,6 +80,10 @@ class FieldSpec:
         if self.linear_aggregation is not None and self.linear_aggregation not in AGGREGATIONS:
             raise ValueError(f"linear_aggregation must be one of {AGGREGATIONS} or None, "
                              f"not {self.linear_aggregation!r}")
+        if self.linear_target not in LINEAR_TARGETS:
+            raise ValueError(f"linear_target must be one of {LINEAR_TARGETS}, not {self.linear_target!r}")
+        if self.linear_target != "all" and not self.linear_aggregate:
+            raise ValueError("linear_target goes with linear_aggregate (the path it says where to add)")
         if self.linear_aggregation is not None and not self.linear_aggregate:
             raise ValueError("linear_aggregation goes with linear_aggregate (the path it feeds)")
         if ("scaled" in (self.aggregation, self.linear_aggregation)) != (self.mean_degree is not None):
@@ -90,10 +100,13 @@ class FieldSpec:
     @property
     def dims(self):
         """The kernels' (kind, dx, du, dm, H, self_msg, zero_msg, linear_agg) tuple (kinds mpnode and l2s);
-        linear_agg: 0 no linear path, 1 the path reads the MLP's aggregate, 2 its own (see Plan.weight)."""
+        linear_agg: flags, 1 the linear path is there, 2 it reads its own aggregate (see Plan.weight),
+        4 it adds to dx/dt alone (mpnode.kernels.mpnode_field)."""
+        flags = 0
+        if self.linear_aggregate:
+            flags = 1 | (2 if self.own_linear_aggregation else 0) | (4 if self.linear_target == "state" else 0)
         return (KINDS.index(self.kind), self.state_dim, self.control_dim, self.message_dim, self.hidden,
-                int(self.self_messages), int(self.zero_messages),
-                2 if self.own_linear_aggregation else int(self.linear_aggregate))
+                int(self.self_messages), int(self.zero_messages), flags)
 
     @property
     def own_linear_aggregation(self):

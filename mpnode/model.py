@@ -46,7 +46,8 @@ class Model:
     @classmethod
     def create(cls, state_dim, control_dim=0, message_dim=3, hidden=32, dt=0.05, substeps=1,
                zero_messages=False, self_messages=False, seed=0, dtype=np.float32, kind="mpnode",
-               aggregation=None, mean_degree=None, n_nodes=None, linear_aggregate=False, linear_aggregation=None):
+               aggregation=None, mean_degree=None, n_nodes=None, linear_aggregate=False, linear_aggregation=None,
+               linear_target="all"):
         """A new model with Glorot-uniform weights and zero biases drawn from ``seed``.
 
         kind "l2s" and "node" have no messages (message_dim is ignored); "node" needs the
@@ -54,8 +55,13 @@ class Model:
         linear_aggregate (mpnode with messages): add the path m' W_agg, W_agg starting at 0.
         linear_aggregation: that path's own aggregate (mean, sum or scaled; None: the MLP's);
         it implies linear_aggregate.  mean_degree goes with "scaled" in either.
+        linear_target: "all" (the path adds to [dx/dt, dm/dt]) or "state" (dx/dt alone; it
+        implies linear_aggregate).
         """
-        linear_aggregate = bool(linear_aggregate or linear_aggregation)
+        linear_target = linear_target or "all"
+        linear_aggregate = bool(linear_aggregate or linear_aggregation or linear_target != "all")
+        if linear_target not in engine.LINEAR_TARGETS:
+            raise InputError("model", "linear_target", f"is {linear_target!r}", " or ".join(engine.LINEAR_TARGETS))
         if linear_aggregation is not None and linear_aggregation not in engine.AGGREGATIONS:
             raise InputError("model", "linear_aggregation", f"is {linear_aggregation!r}",
                              " or ".join(engine.AGGREGATIONS))
@@ -72,7 +78,7 @@ class Model:
                                 bool(zero_messages), bool(self_messages), kind, aggregation,
                                 None if mean_degree is None else float(mean_degree),
                                 None if n_nodes is None else int(n_nodes), bool(linear_aggregate),
-                                linear_aggregation)
+                                linear_aggregation, linear_target)
         return cls(layouts.glorot_init(spec, seed=seed, dtype=dtype), spec, attrs={"seed": seed})
 
     @classmethod
@@ -169,6 +175,7 @@ class Model:
                 "message_dim": s.message_dim, "hidden": s.hidden, "n_nodes": s.n_nodes,
                 "aggregation": s.aggregation, "mean_degree": s.mean_degree,
                 "linear_aggregate": s.linear_aggregate, "linear_aggregation": s.linear_aggregation,
+                "linear_target": s.linear_target,
                 "dt": s.dt, "substeps": s.substeps,
                 "self_messages": s.self_messages, "zero_messages": s.zero_messages, "dtype": str(self.dtype),
                 "parameters": int(self.theta.size),

@@ -16,7 +16,7 @@ FORMAT_VERSION = 2
 _INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "zero_messages", "self_messages")
 _SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator", "kind",
                                  "aggregation", "mean_degree", "n_nodes", "linear_aggregate",
-                                 "linear_aggregation"}
+                                 "linear_aggregation", "linear_target"}
 
 
 def _is_int(v):
@@ -84,8 +84,14 @@ class _Attrs:
         if linear is not None and not on:
             raise InputError(self.path, "linear_aggregation", f"is {linear!r} without linear_aggregate 1",
                              "no linear_aggregation, or linear_aggregate 1 (the path it feeds)")
+        target = self.need("linear_target", lambda v: isinstance(v, str) and v in engine.LINEAR_TARGETS,
+                           " or ".join(engine.LINEAR_TARGETS) + " (what the linear aggregate path adds to)",
+                           default="all")
+        if target != "all" and not on:
+            raise InputError(self.path, "linear_target", f"is {target!r} without linear_aggregate 1",
+                             "no linear_target, or linear_aggregate 1 (the path it says where to add)")
         return engine.FieldSpec(dx, du, dm, hidden, float(dt), substeps, bool(zero), bool(self_msg), kind,
-                                aggregation, mean_degree, n_nodes, on, linear)
+                                aggregation, mean_degree, n_nodes, on, linear, target)
 
     def linear_aggregation(self, aggs):
         """The linear path's own aggregate, or None when absent (the path reads the MLP's)."""
@@ -177,6 +183,8 @@ def spec_attrs(spec):
         attrs["linear_aggregate"] = 1
     if spec.linear_aggregation is not None:  # absent: the path reads the MLP's aggregate
         attrs["linear_aggregation"] = spec.linear_aggregation
+    if spec.linear_target != "all":  # absent: the path adds to every output
+        attrs["linear_target"] = spec.linear_target
     return attrs
 
 

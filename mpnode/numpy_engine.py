@@ -82,7 +82,8 @@ def make_field(spec, theta, graph):
         heard = np.zeros_like(m) if spec.zero_messages else aggregate(m)
         k = mlp(p, np.concatenate([x, u, heard], axis=1))
         if spec.linear_aggregate:  # the path linear in the aggregate, around the MLP
-            k = k + (heard if linear is None else linear(m)) @ p["W_agg"]
+            ncol = p["W_agg"].shape[1]  # dx + dm, or dx for linear_target "state"
+            k[:, :ncol] += (heard if linear is None else linear(m)) @ p["W_agg"]
         if spec.zero_messages:
             k[:, dx:] = 0
         return k

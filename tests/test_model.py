@@ -284,7 +284,7 @@ def write_raw_v2(path, kind, aggregation=None, **extra):
         shapes = {"W1": (n * DX + dm, H), "b1": (H,), "W2": (H, H), "b2": (H,), "W3": (H, n * DX + dm),
                   "b3": (n * DX + dm,)}
         if extra.get("linear_aggregate"):
-            shapes["W_agg"] = (dm, DX + dm)
+            shapes["W_agg"] = (dm, DX if extra.get("linear_target") == "state" else DX + dm)
     attrs.update(extra)
     with h5py.File(path, "w") as f:
         f.attrs.update(attrs)
@@ -324,6 +324,8 @@ def test_version_2_files_of_every_kind_load_and_round_trip(tmp_path, kind, aggre
     ("mpnode", None, {"linear_aggregate": 1, "linear_aggregation": "max"}, "linear_aggregation"),
     ("mpnode", None, {"linear_aggregation": "sum"}, "linear_aggregation"),
     ("mpnode", None, {"linear_aggregate": 1, "linear_aggregation": "scaled"}, "mean_degree"),
+    ("mpnode", None, {"linear_aggregate": 1, "linear_target": "messages"}, "linear_target"),
+    ("mpnode", None, {"linear_target": "state"}, "linear_target"),
 ])
 def test_version_2_files_that_break_a_rule_are_refused(tmp_path, kind, aggregation, extra, field):
     err = load_error(write_raw_v2(tmp_path / "m.h5", kind, aggregation, **extra))
@@ -356,9 +358,22 @@ def test_the_linear_paths_own_aggregation_round_trips(tmp_path):
     assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
 
 
+def test_a_linear_path_to_the_state_alone_round_trips(tmp_path):
+    """linear_target state: W_agg is (dm, dx), the file says so, and it comes back exactly."""
+    path = write_raw_v2(tmp_path / "m.h5", "mpnode", "mean", mean_degree=2.0, linear_aggregate=1,
+                        linear_aggregation="scaled", linear_target="state")
+    m = Model.load(path)
+    assert m.spec.linear_target == "state" and m.params["W_agg"].shape == (DM, DX)
+    m.save(tmp_path / "back.h5")
+    back = Model.load(tmp_path / "back.h5")
+    assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
+    with h5py.File(tmp_path / "back.h5", "r") as f:
+        assert f.attrs["linear_target"] == "state"
+
+
 def test_create_takes_the_linear_aggregation_as_the_switch_and_refuses_unknown_ones():
     m = Model.create(DX, message_dim=DM, linear_aggregation="scaled", mean_degree=3.0)
-    assert m.spec.linear_aggregate and m.spec.dims[-1] == 2 and "W_agg" in m.params
+    assert m.spec.linear_aggregate and m.spec.dims[-1] == 1 | 2 and "W_agg" in m.params
     with pytest.raises(InputError, match="linear_aggregation"):
         Model.create(DX, message_dim=DM, linear_aggregation="max")
 

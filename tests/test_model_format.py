@@ -32,7 +32,8 @@ def rollout_from_file(path, traj):
                            self_messages=bool(a["self_messages"]), aggregation=a.get("aggregation", "mean"),
                            mean_degree=a.get("mean_degree"), n_nodes=a.get("n_nodes"),
                            linear_aggregate=bool(a.get("linear_aggregate", 0)),
-                           linear_aggregation=a.get("linear_aggregation"))
+                           linear_aggregation=a.get("linear_aggregation"),
+                           linear_target=a.get("linear_target", "all"))
     B, T1, N, dx = traj.x.shape
     out = np.empty((B, T1, N, dx))
     for b in range(B):
@@ -44,7 +45,9 @@ def rollout_from_file(path, traj):
 
 @pytest.mark.parametrize("kind,extra", [("mpnode", ["--aggregate", "scaled"]), ("l2s", []), ("node", []),
                                         ("mpnode", ["--aggregate", "scaled", "--linear-aggregate"]),
-                                        ("mpnode", ["--aggregate", "mean", "--linear-aggregation", "scaled"])])
+                                        ("mpnode", ["--aggregate", "mean", "--linear-aggregation", "scaled"]),
+                                        ("mpnode", ["--aggregate", "mean", "--linear-aggregation", "scaled",
+                                                    "--linear-target", "state"])])
 def test_a_rollout_from_the_file_alone_reproduces_eval_predictions(tmp_path, kind, extra):
     data = tiny_file(tmp_path / "d.h5", B=6)
     model = tmp_path / "m.h5"

@@ -24,6 +24,8 @@ SPECS = {
     "mpnode-scaled-linear": dict(message_dim=3, aggregation="scaled", mean_degree=2.0, linear_aggregate=True),
     "mpnode-mean-linear-scaled": dict(message_dim=3, mean_degree=2.0, linear_aggregate=True,
                                       linear_aggregation="scaled"),
+    "mpnode-mean-linear-scaled-state": dict(message_dim=3, mean_degree=2.0, linear_aggregate=True,
+                                            linear_aggregation="scaled", linear_target="state"),
     "l2s-sum": dict(kind="l2s", aggregation="sum"),
     "l2s-mean-self": dict(kind="l2s", aggregation="mean", self_messages=True),
     "node": dict(kind="node", n_nodes=N),
