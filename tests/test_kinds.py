@@ -88,6 +88,7 @@ def test_the_linear_path_reads_its_own_aggregate():
     got = engine.forward(spec, theta, x0, graph, u, 3)
     same = dataclasses.replace(spec, linear_aggregation=None, mean_degree=None)
     assert not np.allclose(got, engine.forward(same, theta, x0, graph, u, 3))
+    assert engine.plan_for(graph, spec, np.float64, driver="stagewise", ordering="rcm").order is not None
     np.testing.assert_allclose(engine.forward(spec, theta, x0, graph, u, 3, driver="stagewise", ordering="rcm"),
                                got, rtol=1e-12, atol=1e-12)
 
