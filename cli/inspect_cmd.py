@@ -32,16 +32,24 @@ def inspect(file, as_json):
                else text(file, summary))
 
 
+def _aggregation_text(name, s):
+    """'mean', or 'scaled (over mean in-degree 8)': an aggregation and the divisor it uses."""
+    return name + (f" (over mean in-degree {s['mean_degree']:g})" if name == "scaled" else "")
+
+
 def _model_text(file, s):
     nodes = f", trained on systems of N={s['n_nodes']} nodes only" if s["n_nodes"] else ", any graph"
-    agg = "" if s["kind"] == "node" else f"aggregation {s['aggregation']}" + (
-        f" (over mean in-degree {s['mean_degree']:g})" if s["mean_degree"] else "")
+    agg = "" if s["kind"] == "node" else "aggregation " + _aggregation_text(s["aggregation"], s)
+    own = s["linear_aggregation"]
+    linear = ", linear aggregate path (W_agg" + (f", reads the {_aggregation_text(own, s)} aggregate" if own else "") \
+        + (", adds to dx/dt only" if s["linear_target"] == "state" else "")
     lines = [f"file:        {file}",
              f"kind:        {s['kind']}{nodes}",
              f"sizes:       dx={s['state_dim']}, du={s['control_dim']}, dm={s['message_dim']}, H={s['hidden']}, "
              f"{s['parameters']} parameters ({s['dtype']})",
              f"messages:    {agg}" + (", self-messages" if s["self_messages"] else "")
-             + (", clamped to zero" if s["zero_messages"] else ""),
+             + (", clamped to zero" if s["zero_messages"] else "")
+             + (linear + ")" if s["linear_aggregate"] else ""),
              f"integration: RK4, dt={s['dt']:g}, {s['substeps']} substep(s) per dt",
              "arrays:      " + ", ".join(f"{k} {v}" for k, v in s["arrays"].items()),
              "attributes:  " + ("" if s["attrs"] else "none")]

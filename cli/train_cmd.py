@@ -218,6 +218,19 @@ def print_validation(result, datasets, sources):
 @click.option("--aggregate", "aggregation", type=click.Choice(["mean", "sum", "scaled"]),
               help="How a node combines what its neighbours send: mean (the paper's), sum, or scaled (the sum over "
                    "the training graphs' mean in-degree).  Default: mean (mpnode), sum (l2s).")
+@click.option("--linear-aggregate", is_flag=True,
+              help="Also feed the aggregate straight to the field, around the MLP (k = MLP([x, u, m']) + m' W_agg, "
+                   "W_agg starting at 0): the field can then follow the larger aggregates of denser graphs than "
+                   "its training graphs (mpnode with messages; docs/model-format.md).")
+@click.option("--linear-aggregation", type=click.Choice(["mean", "sum", "scaled"]),
+              help="The aggregate the linear path reads, when not the MLP's own (implies --linear-aggregate).  "
+                   "E.g. --aggregate mean --linear-aggregation scaled: the MLP sees the degree-free mean, which "
+                   "stays in range on denser graphs, and the degree reaches the field only through the linear "
+                   "path (scaled sum, as PNA's degree scalers).")
+@click.option("--linear-target", type=click.Choice(["all", "state"]),
+              help="What the linear path adds to: all (dx/dt and the messages' dm/dt; the default) or state "
+                   "(dx/dt alone, so the messages' own dynamics never hear the degree; implies "
+                   "--linear-aggregate).")
 @click.option("--zero-messages", is_flag=True, help="Clamp messages to 0 (the paper's ablation).")
 @click.option("--self-messages", is_flag=True,
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")

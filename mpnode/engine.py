@@ -25,6 +25,8 @@ from .graph import Graph
 KINDS = ("mpnode", "l2s", "node")
 #: how a node combines what its neighbours send (model-format.md, "Aggregation")
 AGGREGATIONS = ("mean", "sum", "scaled")
+#: what the linear aggregate path adds to: every output, or dx/dt alone (model-format.md)
+LINEAR_TARGETS = ("all", "state")
 
 
 def default_aggregation(kind):
@@ -41,6 +43,17 @@ class FieldSpec:
         message_dim 0) or "node" (a plain neural ODE of a whole system of ``n_nodes``
         nodes; message_dim 0, the graph is ignored)
     aggregation : "mean", "sum" or "scaled" (the sum divided by ``mean_degree``)
+    linear_aggregate : (mpnode only) the field also adds m' @ W_agg, a path linear in the
+        aggregate m', so that a denser graph's larger aggregate is not squashed by the
+        MLP's tanh units (the gene dynamics are linear in the neighbour sum)
+    linear_target : what that path adds to: "all" ([dx/dt, dm/dt], W_agg (dm, dx+dm)) or
+        "state" (dx/dt alone, W_agg (dm, dx): the messages' own dynamics then never hear
+        the degree, only the MLP's degree-free input)
+    linear_aggregation : the aggregate that path reads when it is not the MLP's own m'
+        ("mean", "sum" or "scaled"; None: the MLP's).  E.g. aggregation "mean" with
+        linear_aggregation "scaled": the MLP sees a degree-free input that stays in range on
+        denser graphs, and the degree reaches the field only through the linear path
+        (as PNA's degree scalers)
     """
 
     state_dim: int
@@ -55,26 +68,51 @@ class FieldSpec:
     aggregation: str = "mean"
     mean_degree: float = None
     n_nodes: int = None
+    linear_aggregate: bool = False
+    linear_aggregation: str = None
+    linear_target: str = "all"
 
     def __post_init__(self):
         if self.kind not in KINDS:
             raise ValueError(f"kind must be one of {KINDS}, not {self.kind!r}")
         if self.aggregation not in AGGREGATIONS:
             raise ValueError(f"aggregation must be one of {AGGREGATIONS}, not {self.aggregation!r}")
-        if (self.aggregation == "scaled") != (self.mean_degree is not None):
-            raise ValueError("mean_degree goes with aggregation 'scaled' (and only with it)")
+        if self.linear_aggregation is not None and self.linear_aggregation not in AGGREGATIONS:
+            raise ValueError(f"linear_aggregation must be one of {AGGREGATIONS} or None, "
+                             f"not {self.linear_aggregation!r}")
+        if self.linear_target not in LINEAR_TARGETS:
+            raise ValueError(f"linear_target must be one of {LINEAR_TARGETS}, not {self.linear_target!r}")
+        if self.linear_target != "all" and not self.linear_aggregate:
+            raise ValueError("linear_target goes with linear_aggregate (the path it says where to add)")
+        if self.linear_aggregation is not None and not self.linear_aggregate:
+            raise ValueError("linear_aggregation goes with linear_aggregate (the path it feeds)")
+        if ("scaled" in (self.aggregation, self.linear_aggregation)) != (self.mean_degree is not None):
+            raise ValueError("mean_degree goes with aggregation or linear_aggregation 'scaled' (and only with it)")
         if self.mean_degree is not None and not self.mean_degree > 0:
             raise ValueError(f"mean_degree must be > 0, not {self.mean_degree}")
         if self.kind != "mpnode" and (self.message_dim or self.zero_messages):
             raise ValueError(f"a {self.kind} model has no message state (message_dim 0, no zero_messages)")
         if (self.kind == "node") != (self.n_nodes is not None):
             raise ValueError("n_nodes goes with kind 'node' (and only with it)")
+        if self.linear_aggregate and (self.kind != "mpnode" or not self.message_dim or self.zero_messages):
+            raise ValueError("linear_aggregate needs an mpnode model with messages (message_dim > 0, no zero_messages)")
 
     @property
     def dims(self):
-        """The kernels' (kind, dx, du, dm, H, self_msg, zero_msg) tuple (kinds mpnode and l2s)."""
+        """The kernels' (kind, dx, du, dm, H, self_msg, zero_msg, linear_agg) tuple (kinds mpnode and l2s);
+        linear_agg: flags, 1 the linear path is there, 2 it reads its own aggregate (see Plan.weight),
+        4 it adds to dx/dt alone (mpnode.kernels.mpnode_field)."""
+        flags = 0
+        if self.linear_aggregate:
+            flags = 1 | (2 if self.own_linear_aggregation else 0) | (4 if self.linear_target == "state" else 0)
         return (KINDS.index(self.kind), self.state_dim, self.control_dim, self.message_dim, self.hidden,
-                int(self.self_messages), int(self.zero_messages))
+                int(self.self_messages), int(self.zero_messages), flags)
+
+    @property
+    def own_linear_aggregation(self):
+        """The linear path's aggregation when it differs from the MLP's, else None."""
+        la = self.linear_aggregation
+        return la if self.linear_aggregate and la is not None and la != self.aggregation else None
 
     @property
     def state_width(self):
@@ -117,7 +155,10 @@ class Plan:
         graph whose 0/1 adjacency (self-loop included for self_messages) starts at
         dense_A[dense_off[b]] (row-major); dense_n[b] = 0 means CSR
     dense_A, dense_AT : flat arrays of those matrices and their transposes
-    weight : ndarray (M,) -- each node's factor on the sum of what its row sends (aggregation)
+    weight : ndarray (M,) -- each node's factor on the sum of what its row sends (aggregation);
+        (2M,) when the linear path has its own aggregation: then weight[M + i] is node i's
+        factor from the MLP's aggregate to the linear path's (`linear_scale`), so that every
+        kernel that reads weight[i] stays as it is
     order : ndarray (M,) or None -- the kernels' node k is the user's node order[k] (a
         locality order for one large graph, see `locality_order`); None: the user's order
     csr : Graph -- the graph as the kernels read it (renumbered by ``order``)
@@ -125,12 +166,15 @@ class Plan:
     """
 
     def __init__(self, graph, n_threads, self_messages, dtype, aggregation, mean_degree, driver="auto",
-                 blocks_per_thread=2, tile=128, ordering="auto"):
+                 blocks_per_thread=2, tile=128, ordering="auto", linear_aggregation=None):
         self.blocks = None
         self.order = None
         self.csr = Graph(graph.indptr, graph.indices)  # not the graph: the cache holds it weakly
         self._transposed = None
         self.weight = aggregation_weights(graph, self_messages, aggregation, mean_degree, dtype)
+        self._linear = None if linear_aggregation is None else linear_scale(
+            graph, self_messages, aggregation, linear_aggregation, mean_degree, dtype)
+        self._join_linear()
         m = graph.n_nodes
         parts = graph.parts or (graph,)
         sizes = np.array([p.n_nodes for p in parts], dtype=np.int64)
@@ -144,7 +188,9 @@ class Plan:
                 self.order = locality_order(self.csr, force=ordering == "rcm")
             if self.order is not None:
                 self.csr = renumbered(self.csr, self.order)
-                self.weight = self.weight[self.order]
+                self.weight = self.weight[:m][self.order]
+                self._linear = None if self._linear is None else self._linear[self.order]
+                self._join_linear()
             return
         target = m / n_blocks
         # Greedy: whole parts into blocks of about `target` nodes, closing a block early
@@ -178,6 +224,11 @@ class Plan:
         self.dense_A = np.concatenate(mats) if mats else np.zeros(0, dtype=dtype)
         self.dense_AT = np.concatenate(mats_t) if mats_t else np.zeros(0, dtype=dtype)
 
+
+    def _join_linear(self):
+        """weight = [the MLP's weights, the linear path's scales] when the path has its own."""
+        if self._linear is not None:
+            self.weight = np.concatenate([self.weight[:len(self._linear)], self._linear])
 
     @property
     def transposed(self):
@@ -282,11 +333,11 @@ def plan_for(graph, spec, dtype, driver="auto", ordering="auto"):
     if ordering not in ORDERINGS:
         raise ValueError(f"ordering must be one of {ORDERINGS}, not {ordering!r}")
     key = (_n_threads(), bool(spec.self_messages), np.dtype(dtype).str, driver, spec.aggregation, spec.mean_degree,
-           ordering)
+           ordering, spec.own_linear_aggregation)
     per_graph = _plans.setdefault(graph, {})
     if key not in per_graph:
         per_graph[key] = Plan(graph, key[0], spec.self_messages, dtype, spec.aggregation, spec.mean_degree, driver,
-                              ordering=ordering)
+                              ordering=ordering, linear_aggregation=spec.own_linear_aggregation)
     return per_graph[key]
 
 
@@ -299,6 +350,16 @@ def aggregation_weights(graph, self_messages, aggregation, mean_degree, dtype):
         np.divide(1.0, d, out=out, where=d > 0, casting="unsafe")
     else:
         out[d > 0] = 1.0 if aggregation == "sum" else 1.0 / mean_degree
+    return out
+
+
+def linear_scale(graph, self_messages, aggregation, linear_aggregation, mean_degree, dtype):
+    """Each node's factor from the MLP's aggregate to the linear path's: the ratio of their
+    weights (e.g. mean -> scaled: degree / mean_degree); 0 for a node that hears nobody."""
+    w = aggregation_weights(graph, self_messages, aggregation, mean_degree, np.float64)
+    wl = aggregation_weights(graph, self_messages, linear_aggregation, mean_degree, np.float64)
+    out = np.zeros(graph.n_nodes, dtype=dtype)
+    np.divide(wl, w, out=out, where=w > 0, casting="unsafe")
     return out
 
 

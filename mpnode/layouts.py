@@ -16,7 +16,15 @@ def param_shapes(spec):
                 "W_upd": (H, H), "b_upd": (H,), "W_out": (H, dx), "b_out": (dx,)}
     n = spec.n_nodes if spec.kind == "node" else 1  # a plain NODE sees all N nodes at once
     din, dout = n * (dx + du) + dm, n * dx + dm
-    return {"W1": (din, H), "b1": (H,), "W2": (H, H), "b2": (H,), "W3": (H, dout), "b3": (dout,)}
+    shapes = {"W1": (din, H), "b1": (H,), "W2": (H, H), "b2": (H,), "W3": (H, dout), "b3": (dout,)}
+    if spec.kind == "mpnode" and spec.linear_aggregate:  # last, so the MLP's layout is the same either way
+        shapes["W_agg"] = (dm, dx if spec.linear_target == "state" else dout)
+    return shapes
+
+
+#: weight matrices that start at zero, not Glorot: W_agg, so that a model with the linear
+#: aggregate path starts as the same MLP without it
+ZERO_INIT = ("W_agg",)
 
 
 def n_params(spec):
@@ -41,11 +49,15 @@ def join(params, shapes, dtype=None):
 
 
 def glorot_init(spec, seed=0, dtype=np.float32):
-    """Glorot-uniform weight matrices; zero biases and zero psi (Flux's defaults)."""
+    """Glorot-uniform weight matrices; zero biases and zero psi (Flux's defaults); zero ZERO_INIT.
+
+    The draws do not depend on ZERO_INIT, so a model with W_agg starts with the same MLP."""
     rng = np.random.default_rng(seed)
     parts = {}
     for name, shape in param_shapes(spec).items():
-        if len(shape) == 2:
+        if name in ZERO_INIT:
+            parts[name] = np.zeros(shape)
+        elif len(shape) == 2:
             limit = np.sqrt(6.0 / (shape[0] + shape[1]))
             parts[name] = rng.uniform(-limit, limit, size=shape)
         else:

@@ -46,21 +46,39 @@ class Model:
     @classmethod
     def create(cls, state_dim, control_dim=0, message_dim=3, hidden=32, dt=0.05, substeps=1,
                zero_messages=False, self_messages=False, seed=0, dtype=np.float32, kind="mpnode",
-               aggregation=None, mean_degree=None, n_nodes=None):
+               aggregation=None, mean_degree=None, n_nodes=None, linear_aggregate=False, linear_aggregation=None,
+               linear_target="all"):
         """A new model with Glorot-uniform weights and zero biases drawn from ``seed``.
 
         kind "l2s" and "node" have no messages (message_dim is ignored); "node" needs the
         system's n_nodes.  aggregation defaults to the kind's own (mean; sum for l2s).
+        linear_aggregate (mpnode with messages): add the path m' W_agg, W_agg starting at 0.
+        linear_aggregation: that path's own aggregate (mean, sum or scaled; None: the MLP's);
+        it implies linear_aggregate.  mean_degree goes with "scaled" in either.
+        linear_target: "all" (the path adds to [dx/dt, dm/dt]) or "state" (dx/dt alone; it
+        implies linear_aggregate).
         """
+        linear_target = linear_target or "all"
+        linear_aggregate = bool(linear_aggregate or linear_aggregation or linear_target != "all")
+        if linear_target not in engine.LINEAR_TARGETS:
+            raise InputError("model", "linear_target", f"is {linear_target!r}", " or ".join(engine.LINEAR_TARGETS))
+        if linear_aggregation is not None and linear_aggregation not in engine.AGGREGATIONS:
+            raise InputError("model", "linear_aggregation", f"is {linear_aggregation!r}",
+                             " or ".join(engine.AGGREGATIONS))
         if kind not in engine.KINDS:
             raise InputError("model", "kind", f"is {kind!r}", " or ".join(engine.KINDS))
+        if linear_aggregate and (kind != "mpnode" or not message_dim or zero_messages):
+            raise InputError("model", "linear_aggregate", f"is asked for a {kind} model with message_dim "
+                             f"{message_dim}{' and zero_messages' if zero_messages else ''}",
+                             "an mpnode model with messages (message_dim > 0, no zero_messages)")
         if kind != "mpnode":
             message_dim, zero_messages = 0, False
         aggregation = aggregation or engine.default_aggregation(kind)
         spec = engine.FieldSpec(state_dim, control_dim, message_dim, hidden, float(dt), int(substeps),
                                 bool(zero_messages), bool(self_messages), kind, aggregation,
                                 None if mean_degree is None else float(mean_degree),
-                                None if n_nodes is None else int(n_nodes))
+                                None if n_nodes is None else int(n_nodes), bool(linear_aggregate),
+                                linear_aggregation, linear_target)
         return cls(layouts.glorot_init(spec, seed=seed, dtype=dtype), spec, attrs={"seed": seed})
 
     @classmethod
@@ -155,7 +173,10 @@ class Model:
         s = self.spec
         return {"kind": s.kind, "state_dim": s.state_dim, "control_dim": s.control_dim,
                 "message_dim": s.message_dim, "hidden": s.hidden, "n_nodes": s.n_nodes,
-                "aggregation": s.aggregation, "mean_degree": s.mean_degree, "dt": s.dt, "substeps": s.substeps,
+                "aggregation": s.aggregation, "mean_degree": s.mean_degree,
+                "linear_aggregate": s.linear_aggregate, "linear_aggregation": s.linear_aggregation,
+                "linear_target": s.linear_target,
+                "dt": s.dt, "substeps": s.substeps,
                 "self_messages": s.self_messages, "zero_messages": s.zero_messages, "dtype": str(self.dtype),
                 "parameters": int(self.theta.size),
                 "arrays": {name: list(a.shape) for name, a in self.params.items()},

@@ -15,7 +15,8 @@ FORMAT_VERSION = 2
 
 _INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "zero_messages", "self_messages")
 _SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator", "kind",
-                                 "aggregation", "mean_degree", "n_nodes"}
+                                 "aggregation", "mean_degree", "n_nodes", "linear_aggregate",
+                                 "linear_aggregation", "linear_target"}
 
 
 def _is_int(v):
@@ -57,8 +58,9 @@ class _Attrs:
         aggregation = need("aggregation", lambda v: isinstance(v, str) and v in aggs,
                            " or ".join(aggs) + " (the aggregations this version knows)",
                            default=engine.default_aggregation(kind))
+        linear = self.linear_aggregation(aggs)
         mean_degree = None
-        if aggregation == "scaled":
+        if "scaled" in (aggregation, linear):
             mean_degree = float(need("mean_degree", lambda v: _is_number(v) and v > 0,
                                      "a number > 0 (the training graphs' mean in-degree)"))
         n_nodes = None
@@ -78,8 +80,36 @@ class _Attrs:
             raise InputError(self.path, "zero_messages", "is 1", f"0 (a {kind} model has no messages)")
         self_msg = need("self_messages", flag, "0 or 1", default=0 if kind == "node" else None)
         dt = need("dt", lambda v: _is_number(v) and v > 0, "a number > 0")
+        on = self.linear_aggregate(kind, dm, zero)
+        if linear is not None and not on:
+            raise InputError(self.path, "linear_aggregation", f"is {linear!r} without linear_aggregate 1",
+                             "no linear_aggregation, or linear_aggregate 1 (the path it feeds)")
+        target = self.need("linear_target", lambda v: isinstance(v, str) and v in engine.LINEAR_TARGETS,
+                           " or ".join(engine.LINEAR_TARGETS) + " (what the linear aggregate path adds to)",
+                           default="all")
+        if target != "all" and not on:
+            raise InputError(self.path, "linear_target", f"is {target!r} without linear_aggregate 1",
+                             "no linear_target, or linear_aggregate 1 (the path it says where to add)")
         return engine.FieldSpec(dx, du, dm, hidden, float(dt), substeps, bool(zero), bool(self_msg), kind,
-                                aggregation, mean_degree, n_nodes)
+                                aggregation, mean_degree, n_nodes, on, linear, target)
+
+    def linear_aggregation(self, aggs):
+        """The linear path's own aggregate, or None when absent (the path reads the MLP's)."""
+        if "linear_aggregation" not in self.a:
+            return None
+        return self.need("linear_aggregation", lambda v: isinstance(v, str) and v in aggs,
+                         " or ".join(aggs) + " (the aggregations this version knows)")
+
+    def linear_aggregate(self, kind, dm, zero):
+        """The linear aggregate path switch: 0 when absent (files before it, and every model
+        without it); 1 only for an mpnode model that has messages to aggregate."""
+        flag = lambda v: isinstance(v, (int, float)) and v in (0, 1)  # noqa: E731
+        on = bool(self.need("linear_aggregate", flag, "0 or 1", default=0))
+        if on and (kind != "mpnode" or not dm or zero):
+            raise InputError(self.path, "linear_aggregate", "is 1",
+                             "0 (the linear aggregate path needs an mpnode model with messages: message_dim > 0, "
+                             "zero_messages 0)")
+        return on
 
 
 def read_model(path):
@@ -149,6 +179,12 @@ def spec_attrs(spec):
         attrs["mean_degree"] = float(spec.mean_degree)
     if spec.n_nodes is not None:
         attrs["n_nodes"] = int(spec.n_nodes)
+    if spec.linear_aggregate:  # absent means off: files without the path stay as they were
+        attrs["linear_aggregate"] = 1
+    if spec.linear_aggregation is not None:  # absent: the path reads the MLP's aggregate
+        attrs["linear_aggregation"] = spec.linear_aggregation
+    if spec.linear_target != "all":  # absent: the path adds to every output
+        attrs["linear_target"] = spec.linear_target
     return attrs
 
 

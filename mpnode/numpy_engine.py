@@ -25,14 +25,15 @@ def mlp(p, V):
     return h2 @ p["W3"] + p["b3"]
 
 
-def aggregator(spec, graph, dtype):
+def aggregator(spec, graph, dtype, aggregation=None):
     """The neighbour aggregation on ``graph`` as a function src (M, w) -> (M, w).
 
     Row i gets weight_i * (the sum of src over the nodes i hears [plus i itself with
     self_messages]): weight 1/count (mean), 1 (sum) or 1/mean_degree (scaled), and 0
-    for a node that hears nobody.
+    for a node that hears nobody.  aggregation: another than the spec's (the linear path's own).
     """
-    weight = aggregation_weights(graph, spec.self_messages, spec.aggregation, spec.mean_degree, dtype)[:, None]
+    weight = aggregation_weights(graph, spec.self_messages, aggregation or spec.aggregation, spec.mean_degree,
+                                 dtype)[:, None]
     rows = np.flatnonzero(graph.degrees() > 0)
     starts = graph.indptr[:-1][rows]  # the rows that hear someone, each its own segment of indices
     indices = graph.indices
@@ -73,11 +74,16 @@ def make_field(spec, theta, graph):
             return (h1 + h0) @ p["W_out"] + p["b_out"]
 
         return l2s_field
+    own = getattr(spec, "linear_aggregation", None)  # the linear path's own aggregate, from the messages
+    linear = aggregator(spec, graph, theta.dtype, own) if spec.linear_aggregate and own else None
 
     def mpnode_field(z, u):
         x, m = z[:, :dx], z[:, dx:]
         heard = np.zeros_like(m) if spec.zero_messages else aggregate(m)
         k = mlp(p, np.concatenate([x, u, heard], axis=1))
+        if spec.linear_aggregate:  # the path linear in the aggregate, around the MLP
+            ncol = p["W_agg"].shape[1]  # dx + dm, or dx for linear_target "state"
+            k[:, :ncol] += (heard if linear is None else linear(m)) @ p["W_agg"]
         if spec.zero_messages:
             k[:, dx:] = 0
         return k

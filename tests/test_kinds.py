@@ -1,4 +1,5 @@
-"""Every model kind and aggregation through the engine, in float64, on both drivers.
+"""Every model kind and aggregation (and the linear aggregate path) through the engine, in
+float64, on both drivers.
 
 - rollouts against the NumPy reference of engine_helpers (written from the model format);
 - the rollout's vector-Jacobian product with an *arbitrary* cotangent (the engine's one
@@ -19,6 +20,14 @@ KIND_SPECS = {
     "mpnode-mean": spec_(),
     "mpnode-sum": spec_(aggregation="sum"),
     "mpnode-scaled-self": spec_(aggregation="scaled", mean_degree=2.5, self_messages=True),
+    "mpnode-scaled-linear": spec_(aggregation="scaled", mean_degree=2.5, linear_aggregate=True),
+    "mpnode-mean-self-linear": spec_(self_messages=True, linear_aggregate=True),
+    "mpnode-mean-linear-scaled": spec_(linear_aggregate=True, linear_aggregation="scaled", mean_degree=2.5),
+    "mpnode-scaled-self-linear-mean": spec_(aggregation="scaled", mean_degree=2.5, self_messages=True,
+                                            linear_aggregate=True, linear_aggregation="mean"),
+    "mpnode-mean-linear-scaled-state": spec_(linear_aggregate=True, linear_aggregation="scaled", mean_degree=2.5,
+                                             linear_target="state"),
+    "mpnode-sum-linear-state": spec_(aggregation="sum", linear_aggregate=True, linear_target="state"),
     "l2s-sum": spec_(kind="l2s", message_dim=0),
     "l2s-mean-self": spec_(kind="l2s", message_dim=0, aggregation="mean", self_messages=True),
     "l2s-scaled": spec_(kind="l2s", message_dim=0, aggregation="scaled", mean_degree=3.0),
@@ -68,6 +77,20 @@ def test_aggregations_differ_as_the_format_says():
                                     theta, x0, graph, u, 2) for agg in ("mean", "sum", "scaled")}
         assert not np.allclose(outs["mean"], outs["sum"])
         assert not np.allclose(outs["sum"], outs["scaled"])
+
+
+def test_the_linear_path_reads_its_own_aggregate():
+    """mean for the MLP, scaled sum for the linear path: not the rollout of either alone, and
+    the same in a renumbered (reverse Cuthill-McKee) stagewise run, whose weights move too."""
+    graph = mixed_graph(6, big=140)
+    spec = KIND_SPECS["mpnode-mean-linear-scaled"]
+    theta, x0, u = problem(spec, graph, 3, seed=7)
+    got = engine.forward(spec, theta, x0, graph, u, 3)
+    same = dataclasses.replace(spec, linear_aggregation=None, mean_degree=None)
+    assert not np.allclose(got, engine.forward(same, theta, x0, graph, u, 3))
+    assert engine.plan_for(graph, spec, np.float64, driver="stagewise", ordering="rcm").order is not None
+    np.testing.assert_allclose(engine.forward(spec, theta, x0, graph, u, 3, driver="stagewise", ordering="rcm"),
+                               got, rtol=1e-12, atol=1e-12)
 
 
 def check_vjp(spec, graph, T, seed, n_dirs=2):

@@ -283,6 +283,8 @@ def write_raw_v2(path, kind, aggregation=None, **extra):
         n = extra.get("n_nodes", 1)
         shapes = {"W1": (n * DX + dm, H), "b1": (H,), "W2": (H, H), "b2": (H,), "W3": (H, n * DX + dm),
                   "b3": (n * DX + dm,)}
+        if extra.get("linear_aggregate"):
+            shapes["W_agg"] = (dm, DX if extra.get("linear_target") == "state" else DX + dm)
     attrs.update(extra)
     with h5py.File(path, "w") as f:
         f.attrs.update(attrs)
@@ -315,10 +317,87 @@ def test_version_2_files_of_every_kind_load_and_round_trip(tmp_path, kind, aggre
     ("node", None, {}, "n_nodes"),
     ("l2s", None, {"message_dim": 3}, "message_dim"),
     ("l2s", None, {"zero_messages": 1}, "zero_messages"),
+    ("mpnode", None, {"linear_aggregate": 2}, "linear_aggregate"),
+    ("mpnode", None, {"linear_aggregate": 1, "zero_messages": 1}, "linear_aggregate"),
+    ("mpnode", None, {"linear_aggregate": 1, "message_dim": 0}, "linear_aggregate"),
+    ("l2s", None, {"linear_aggregate": 1}, "linear_aggregate"),
+    ("mpnode", None, {"linear_aggregate": 1, "linear_aggregation": "max"}, "linear_aggregation"),
+    ("mpnode", None, {"linear_aggregation": "sum"}, "linear_aggregation"),
+    ("mpnode", None, {"linear_aggregate": 1, "linear_aggregation": "scaled"}, "mean_degree"),
+    ("mpnode", None, {"linear_aggregate": 1, "linear_target": "messages"}, "linear_target"),
+    ("mpnode", None, {"linear_target": "state"}, "linear_target"),
 ])
 def test_version_2_files_that_break_a_rule_are_refused(tmp_path, kind, aggregation, extra, field):
     err = load_error(write_raw_v2(tmp_path / "m.h5", kind, aggregation, **extra))
     assert err.field == field, err
+
+
+def test_linear_aggregate_round_trips_and_files_without_it_load_as_off(tmp_path):
+    """The switch and W_agg come back exactly; a file without the attribute (every file
+    before it) is a model without the path, and is written back without it."""
+    on = Model.load(write_raw_v2(tmp_path / "on.h5", "mpnode", "scaled", mean_degree=2.0, linear_aggregate=1))
+    assert on.spec.linear_aggregate and on.params["W_agg"].shape == (DM, DX + DM) and np.any(on.params["W_agg"])
+    off = Model.load(write_raw_v2(tmp_path / "off.h5", "mpnode"))
+    assert not off.spec.linear_aggregate and "W_agg" not in off.params
+    for m, name in ((on, "on"), (off, "off")):
+        m.save(tmp_path / f"{name}2.h5")
+        back = Model.load(tmp_path / f"{name}2.h5")
+        assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
+        with h5py.File(tmp_path / f"{name}2.h5", "r") as f:
+            assert ("linear_aggregate" in f.attrs) == ("W_agg" in f["params"]) == (name == "on")
+
+
+def test_the_linear_paths_own_aggregation_round_trips(tmp_path):
+    """mean for the MLP, scaled for the linear path: the file records both and the mean degree."""
+    path = write_raw_v2(tmp_path / "m.h5", "mpnode", "mean", mean_degree=2.0, linear_aggregate=1,
+                        linear_aggregation="scaled")
+    m = Model.load(path)
+    assert (m.spec.aggregation, m.spec.linear_aggregation, m.spec.mean_degree) == ("mean", "scaled", 2.0)
+    m.save(tmp_path / "back.h5")
+    back = Model.load(tmp_path / "back.h5")
+    assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
+
+
+def test_a_linear_path_to_the_state_alone_round_trips(tmp_path):
+    """linear_target state: W_agg is (dm, dx), the file says so, and it comes back exactly."""
+    path = write_raw_v2(tmp_path / "m.h5", "mpnode", "mean", mean_degree=2.0, linear_aggregate=1,
+                        linear_aggregation="scaled", linear_target="state")
+    m = Model.load(path)
+    assert m.spec.linear_target == "state" and m.params["W_agg"].shape == (DM, DX)
+    m.save(tmp_path / "back.h5")
+    back = Model.load(tmp_path / "back.h5")
+    assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
+    with h5py.File(tmp_path / "back.h5", "r") as f:
+        assert f.attrs["linear_target"] == "state"
+
+
+def test_create_takes_the_linear_aggregation_as_the_switch_and_refuses_unknown_ones():
+    m = Model.create(DX, message_dim=DM, linear_aggregation="scaled", mean_degree=3.0)
+    assert m.spec.linear_aggregate and m.spec.dims[-1] == 1 | 2 and "W_agg" in m.params
+    with pytest.raises(InputError, match="linear_aggregation"):
+        Model.create(DX, message_dim=DM, linear_aggregation="max")
+
+
+def test_a_file_with_the_switch_but_no_w_agg_is_refused(tmp_path):
+    path = write_raw_v2(tmp_path / "m.h5", "mpnode", linear_aggregate=1)
+    with h5py.File(path, "a") as f:
+        del f["params/W_agg"]
+    assert load_error(path).field == "params/W_agg"
+
+
+def test_linear_aggregate_starts_as_the_model_without_it(graph):
+    """W_agg starts at 0 and the MLP's draws do not change: the same rollout, bit for bit."""
+    kw = dict(control_dim=DU, message_dim=DM, hidden=H, seed=4, dtype=np.float64, aggregation="sum")
+    on, off = Model.create(DX, linear_aggregate=True, **kw), Model.create(DX, **kw)
+    assert not np.any(on.params["W_agg"]) and np.array_equal(on.theta[:off.theta.size], off.theta)
+    x0, u = data()
+    np.testing.assert_array_equal(on.rollout(x0, graph, u), off.rollout(x0, graph, u))
+
+
+@pytest.mark.parametrize("kw", [dict(kind="l2s"), dict(message_dim=0), dict(zero_messages=True)])
+def test_create_refuses_a_linear_aggregate_without_messages(kw):
+    with pytest.raises(InputError, match="linear_aggregate"):
+        Model.create(DX, linear_aggregate=True, **kw)
 
 
 def test_a_node_model_refuses_a_graph_of_another_size(tmp_path, graph):

@@ -1,11 +1,17 @@
-"""The MP-NODE field on a tile of nodes: k = MLP([x, u, m']), and its VJP.
+"""The MP-NODE field on a tile of nodes: k = MLP([x, u, m']) [+ m' W_agg], and its VJP.
 
 A node's state is z = [x, m] (dz = dx + dm).  What a node sends its neighbours is its
 message m itself (the columns dx: of z), so nothing is computed before the neighbour
 sum; m' = weight * (sum over the row).  Parameters, flat in this order (row-major):
 W1 (din, H), b1 (H), W2 (H, H), b2 (H), W3 (H, dout), b3 (dout) with din = dx + du + dm
-and dout = dx + dm.  ``dims`` = (kind, dx, du, dm, H, self_msg, zero_msg).
+and dout = dx + dm, then W_agg (dm, dout), or (dm, dx) when it feeds dx/dt alone, when
+linear_agg is not 0 (the linear aggregate path).  ``dims`` = (kind, dx, du, dm, H, self_msg,
+zero_msg, linear_agg); linear_agg is a set of flags: 1 the path is there (reading the MLP's
+aggregate m'); 2 it reads s_i m'_i instead, s_i = weight[M + i] (the weight array then has 2M
+entries; e.g. mean for the MLP, scaled sum for the path: s_i = deg_i / D); 4 it adds to
+dx/dt only (W_agg (dm, dx)), so the messages' own dynamics do not hear the degree.
 """
+import numpy as np
 from numba import njit
 
 from .layers import JIT, aggregate_tile, dense_backward, dense_forward, dense_tanh_backward, dense_tanh_forward
@@ -27,6 +33,47 @@ def unpack(theta, din, H, dout):
     o += H * dout
     b3 = theta[o:o + dout]
     return W1, b1, W2, b2, W3, b3
+
+
+@njit(**JIT)
+def unpack_agg(theta, din, H, dout, dm, ncol):
+    """The view W_agg (dm, ncol) that follows the MLP's parameters in ``theta`` (ncol: dout,
+    or dx when the path feeds dx/dt alone)."""
+    o = din * H + H + H * H + H + H * dout + dout
+    return theta[o:o + dm * ncol].reshape(dm, ncol)
+
+
+@njit(**JIT)
+def linear_input(V, c, weight, own, i0):
+    """The linear path's input for rows i0..: V[:, c:] (the MLP's aggregate), each row r
+    times weight[M + i0 + r] when the path has its ``own`` aggregation (M = weight.size / 2)."""
+    Va = np.ascontiguousarray(V[:, c:])
+    if own:
+        off = weight.shape[0] // 2 + i0
+        for r in range(Va.shape[0]):
+            Va[r] *= weight[off + r]
+    return Va
+
+
+@njit(**JIT)
+def linear_aggregate_forward(Wa, V, c, weight, own, i0, K):
+    """K[:, :ncol] += A Wa (ncol = Wa's columns), A = linear_input(...): the aggregate's path
+    around the MLP (whose tanh units cannot follow the larger aggregates of denser graphs;
+    the gene dynamics are linear in them)."""
+    K[:, :Wa.shape[1]] += np.dot(linear_input(V, c, weight, own, i0), Wa)
+
+
+@njit(**JIT)
+def linear_aggregate_backward(Wa, V, c, weight, own, i0, GK, gWa, GV):
+    """VJP of linear_aggregate_forward: gWa += A^T G, GV[:, c:] += s * (G Wa^T), G = GK[:, :ncol]."""
+    G = np.ascontiguousarray(GK[:, :Wa.shape[1]])
+    gWa += np.dot(linear_input(V, c, weight, own, i0).T, G)
+    GA = np.dot(G, Wa.T)
+    if own:
+        off = weight.shape[0] // 2 + i0
+        for r in range(GA.shape[0]):
+            GA[r] *= weight[off + r]
+    GV[:, c:] += GA
 
 
 @njit(**JIT)
@@ -55,7 +102,7 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
     MLP's inputs and activations for the VJP.  ``sums``: dense-path row sums or empty.
     The neighbours' messages are read from msrc[:, mcol0:mcol0+dm]: zin itself (mcol0 = dx),
     or a compact copy of its message columns (mcol0 = 0; half the memory a gather touches)."""
-    _, dx, du, dm, _, self_msg, zero_msg = dims
+    _, dx, du, dm, H, self_msg, zero_msg, linear_agg = dims
     indptr, indices, weight = graph
     c = dx + du
     for r in range(i1 - i0):
@@ -69,6 +116,10 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
     else:
         aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, V, c)
     K = mlp_forward(theta, V, H1, H2, dx + dm)
+    if linear_agg:
+        ncol = dx if linear_agg & 4 else dx + dm
+        linear_aggregate_forward(unpack_agg(theta, c + dm, H, dx + dm, dm, ncol), V, c, weight, (linear_agg & 2) != 0,
+                                 i0, K)
     if zero_msg:
         K[:, dx:] = 0
     return K
@@ -82,11 +133,16 @@ def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gi
     aggregate cotangent into gagg (rows ``i - zoff``), which the transpose of the neighbour
     sum turns into the senders' message cotangents; adds into gtheta.
     """
-    _, dx, du, dm, _, _, zero_msg = dims
+    _, dx, du, dm, H, _, zero_msg, linear_agg = dims
     if zero_msg:
         GK[:, dx:] = 0
-    GV = mlp_backward(theta, V, H1, H2, GK, gtheta)
+    GV = mlp_backward(theta, V, H1, H2, GK, gtheta)  # GK is left as it was given
     c = dx + du
+    if linear_agg:  # before the aggregate's cotangent is read out of GV below
+        din, dout = c + dm, dx + dm
+        ncol = dx if linear_agg & 4 else dout
+        linear_aggregate_backward(unpack_agg(theta, din, H, dout, dm, ncol), V, c, weight, (linear_agg & 2) != 0, i0,
+                                  GK, unpack_agg(gtheta, din, H, dout, dm, ncol), GV)
     for r in range(i1 - i0):
         i = i0 + r
         zi = i - zoff

@@ -22,7 +22,7 @@ The forward drivers start from a full state z0 (M, dz) and return the final one 
 after every RK4 step when given a ``states`` array (T*substeps+1, M, dz); the reverse drivers take the cotangent of every output state,
 GX (T+1, M, dx), recompute each step's stages from the kept state and return the
 parameter cotangent (one buffer per block or tile, reduced by the caller: deterministic,
-no races) and the initial state's.  ``dims`` = (kind, dx, du, dm, H, self_msg, zero_msg);
+no races) and the initial state's.  ``dims`` = (kind, dx, du, dm, H, self_msg, zero_msg, linear_agg);
 ``graph`` = (indptr, indices, weight), ``tgraph`` = (tindptr, tindices) its transpose.
 """
 import numpy as np
