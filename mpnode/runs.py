@@ -94,7 +94,8 @@ def _attrs(paths, datasets, **more):
 def with_recipe(options, name, system):
     """(options completed by recipe ``name`` for ``system``, the recipe's settings used)."""
     options = dict(options or {})
-    settings = recipe(name, system, options.get("kind", MODEL_OPTIONS["kind"]))
+    messages = options.get("message_dim", MODEL_OPTIONS["message_dim"]) != 0 and not options.get("zero_messages")
+    settings = recipe(name, system, options.get("kind", MODEL_OPTIONS["kind"]), messages)
     used = {k: v for k, v in settings.items() if k not in options}
     return {**used, **options}, used
 

@@ -121,12 +121,19 @@ def test_the_recipe_fills_what_the_user_leaves_unset(tmp_path):
     data = gene_file(tmp_path / "g.h5")
     res = run("train", data, "-o", tmp_path / "auto.h5", "--epochs", 1, "--hidden", 8)
     assert res.exit_code == 0, res.output
-    assert "recipe auto for gene: aggregation scaled" in res.output and "val_graphs 1" in res.output
-    auto = Model.load(tmp_path / "auto.h5")
-    assert auto.spec.aggregation == "scaled" and auto.attrs["recipe"] == "auto"
-    assert auto.spec.mean_degree == pytest.approx(8.0)  # BA(16, 8): 64 edges, both directions, over 16 nodes
+    assert "recipe auto for gene: aggregation mean" in res.output and "linear_aggregation scaled" in res.output
+    assert "linear_target state" in res.output and "val_graphs 1" in res.output
+    auto = Model.load(tmp_path / "auto.h5").spec
+    assert (auto.aggregation, auto.linear_aggregate, auto.linear_aggregation, auto.linear_target) == \
+        ("mean", True, "scaled", "state")
+    assert auto.mean_degree == pytest.approx(8.0)  # BA(16, 8): 64 edges, both directions, over 16 nodes
+    assert Model.load(tmp_path / "auto.h5").attrs["recipe"] == "auto"
     res = run("train", data, "-o", tmp_path / "paper.h5", "--epochs", 1, "--hidden", 8, "--recipe", "paper")
-    assert res.exit_code == 0 and Model.load(tmp_path / "paper.h5").spec.aggregation == "mean"
+    paper = Model.load(tmp_path / "paper.h5").spec
+    assert res.exit_code == 0 and (paper.aggregation, paper.linear_aggregate) == ("mean", False)
+    res = run("train", data, "-o", tmp_path / "zero.h5", "--epochs", 1, "--hidden", 8, "--zero-messages")
+    assert res.exit_code == 0, res.output  # the recipe's linear path needs messages: left out, not refused
+    assert not Model.load(tmp_path / "zero.h5").spec.linear_aggregate
     res = run("train", data, "-o", tmp_path / "sum.h5", "--epochs", 1, "--hidden", 8, "--aggregate", "sum")
     assert res.exit_code == 0 and Model.load(tmp_path / "sum.h5").spec.aggregation == "sum"
 
