@@ -158,10 +158,26 @@ class RunSpec:
 
     @property
     def key(self):
-        """A digest of the settings that differ from the defaults (so a new field keeps old caches valid)."""
+        """A digest of the settings that differ from the defaults (so a new field keeps old caches
+        valid), and of what recipe auto changes from the paper's for this run's system (so that a
+        new recipe retrains the runs it concerns, and only those)."""
         changed = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                    if getattr(self, f.name) != f.default}
+        recipe_changes = self.recipe_changes()
+        if recipe_changes:
+            changed["recipe_changes"] = recipe_changes
         return hashlib.sha1(json.dumps(changed, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+    def recipe_changes(self):
+        """The settings recipe ``self.recipe`` takes differently from the paper's recipe."""
+        from mpnode import recipes
+        from mpnode.data_gen import load_scene
+
+        if self.recipe == "paper" or self.init_from:
+            return {}
+        system = load_scene(self.train[0].scene).system
+        paper = recipes.recipe("paper", system, self.kind)
+        return {k: v for k, v in recipes.recipe(self.recipe, system, self.kind).items() if paper.get(k) != v}
 
 
 def run_dir(work, name):
