@@ -1,4 +1,5 @@
-"""Model files (docs/model-format.md, version 2; version 1 still reads): validated reader, atomic writer.
+"""Model files (docs/model-format.md, version 2; 3 for a model with the linear aggregate path;
+version 1 still reads): validated reader, atomic writer.
 
 The reader returns what the file holds (spec, flat parameters, normalisation, extra
 attributes) and the writer takes the same; `mpnode.model.Model` makes a model of them.
@@ -12,6 +13,9 @@ from .errors import InputError
 
 FORMAT = "mpnode.model"
 FORMAT_VERSION = 2
+#: written only for a model with the linear aggregate path, so that a version-2 reader (which
+#: ignores attributes it does not know) refuses it instead of dropping the path
+LINEAR_PATH_VERSION = 3
 
 _INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "zero_messages", "self_messages")
 _SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator", "kind",
@@ -47,8 +51,8 @@ class _Attrs:
         """The FieldSpec the attributes describe (every rule of the format's root attributes)."""
         need = self.need
         need("format", lambda v: isinstance(v, str) and v == FORMAT, f"'{FORMAT}'")
-        version = need("format_version", lambda v: _is_int(v) and v in (1, FORMAT_VERSION),
-                       f"1 or {FORMAT_VERSION} (the versions this reader knows)")
+        version = need("format_version", lambda v: _is_int(v) and v in (1, FORMAT_VERSION, LINEAR_PATH_VERSION),
+                       f"1, {FORMAT_VERSION} or {LINEAR_PATH_VERSION} (the versions this reader knows)")
         need("activation", lambda v: isinstance(v, str) and v == "tanh", "'tanh'")
         need("integrator", lambda v: isinstance(v, str) and v == "rk4", "'rk4' (classic 4-stage)")
         known = engine.KINDS if version > 1 else ("mpnode",)
@@ -81,6 +85,10 @@ class _Attrs:
         self_msg = need("self_messages", flag, "0 or 1", default=0 if kind == "node" else None)
         dt = need("dt", lambda v: _is_number(v) and v > 0, "a number > 0")
         on = self.linear_aggregate(kind, dm, zero)
+        if (version == LINEAR_PATH_VERSION) != on:
+            raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(on)}",
+                             f"{LINEAR_PATH_VERSION} exactly when the model has the linear aggregate path "
+                             f"(linear_aggregate 1), {FORMAT_VERSION} otherwise")
         if linear is not None and not on:
             raise InputError(self.path, "linear_aggregation", f"is {linear!r} without linear_aggregate 1",
                              "no linear_aggregation, or linear_aggregate 1 (the path it feeds)")
@@ -170,8 +178,9 @@ def _dataset(f, path, name, shape):
 
 
 def spec_attrs(spec):
-    """The root attributes that describe ``spec`` (format version 2)."""
-    attrs = dict(format=FORMAT, format_version=FORMAT_VERSION, kind=spec.kind, aggregation=spec.aggregation,
+    """The root attributes that describe ``spec`` (format version 2, or 3 with the linear path)."""
+    version = LINEAR_PATH_VERSION if spec.linear_aggregate else FORMAT_VERSION
+    attrs = dict(format=FORMAT, format_version=version, kind=spec.kind, aggregation=spec.aggregation,
                  state_dim=spec.state_dim, control_dim=spec.control_dim, message_dim=spec.message_dim,
                  hidden=spec.hidden, activation="tanh", dt=float(spec.dt), substeps=spec.substeps,
                  integrator="rk4", zero_messages=int(spec.zero_messages), self_messages=int(spec.self_messages))

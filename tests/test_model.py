@@ -269,10 +269,12 @@ def test_bad_dataset_is_named(tmp_path, field, mutate):
 # Version 2: kinds and aggregations
 # ---------------------------------------------------------------------------
 def write_raw_v2(path, kind, aggregation=None, **extra):
-    """A version-2 file of ``kind`` written with plain h5py from the format alone."""
+    """A version-2 file of ``kind`` written with plain h5py from the format alone (version 3 when
+    ``extra`` asks for the linear aggregate path, as the format says)."""
     rng = np.random.default_rng(1)
     dm = DM if kind == "mpnode" else 0
-    attrs = dict(format="mpnode.model", format_version=2, kind=kind, state_dim=DX, control_dim=0, message_dim=dm,
+    version = 3 if extra.get("linear_aggregate") == 1 else 2
+    attrs = dict(format="mpnode.model", format_version=version, kind=kind, state_dim=DX, control_dim=0, message_dim=dm,
                  hidden=H, activation="tanh", dt=0.1, substeps=1, integrator="rk4", zero_messages=0, self_messages=0)
     if aggregation:
         attrs["aggregation"] = aggregation
@@ -326,6 +328,8 @@ def test_version_2_files_of_every_kind_load_and_round_trip(tmp_path, kind, aggre
     ("mpnode", None, {"linear_aggregate": 1, "linear_aggregation": "scaled"}, "mean_degree"),
     ("mpnode", None, {"linear_aggregate": 1, "linear_target": "messages"}, "linear_target"),
     ("mpnode", None, {"linear_target": "state"}, "linear_target"),
+    ("mpnode", None, {"format_version": 3}, "format_version"),  # 3 is only for the linear path
+    ("mpnode", None, {"linear_aggregate": 1, "format_version": 2}, "format_version"),  # a v2 reader would drop it
 ])
 def test_version_2_files_that_break_a_rule_are_refused(tmp_path, kind, aggregation, extra, field):
     err = load_error(write_raw_v2(tmp_path / "m.h5", kind, aggregation, **extra))
@@ -345,6 +349,7 @@ def test_linear_aggregate_round_trips_and_files_without_it_load_as_off(tmp_path)
         assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
         with h5py.File(tmp_path / f"{name}2.h5", "r") as f:
             assert ("linear_aggregate" in f.attrs) == ("W_agg" in f["params"]) == (name == "on")
+            assert f.attrs["format_version"] == (3 if name == "on" else 2)
 
 
 def test_the_linear_paths_own_aggregation_round_trips(tmp_path):
