@@ -55,10 +55,12 @@ def test_every_run_completed(quick_run):
 
 def test_aggregation_runs_use_the_recipes_aggregations(quick_run):
     numbers = json.loads((quick_run / "results" / "aggregation.json").read_text())
-    assert {name: numbers[name]["aggregation"] for name in
-            ("gene16_paper_mean", "gene16_scaled", "gene16_default", "gene16_l2s", "gene16_paper_mean_hot")} == {
-        "gene16_paper_mean": "mean", "gene16_scaled": "scaled", "gene16_default": "scaled", "gene16_l2s": "sum",
-        "gene16_paper_mean_hot": "mean"}
+    assert {name: (numbers[name]["aggregation"], numbers[name]["linear_aggregation"]) for name in
+            ("gene16_paper_mean", "gene16_scaled", "gene16_scaled_heldout", "gene16_default", "gene16_l2s",
+             "gene16_paper_mean_hot")} == {
+        "gene16_paper_mean": ("mean", None), "gene16_scaled": ("scaled", None),
+        "gene16_scaled_heldout": ("scaled", None), "gene16_default": ("mean", "scaled"), "gene16_l2s": ("sum", None),
+        "gene16_paper_mean_hot": ("mean", None)}
     assert all(v["nmse"] > 0 for case in ("gene16_default", "gene16_l2s") for k, v in numbers[case].items()
                if isinstance(v, dict))
 
