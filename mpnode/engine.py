@@ -172,9 +172,9 @@ class Plan:
         self.csr = Graph(graph.indptr, graph.indices)  # not the graph: the cache holds it weakly
         self._transposed = None
         self.weight = aggregation_weights(graph, self_messages, aggregation, mean_degree, dtype)
-        self._linear = None if linear_aggregation is None else linear_scale(
-            graph, self_messages, aggregation, linear_aggregation, mean_degree, dtype)
-        self._join_linear()
+        if linear_aggregation is not None:
+            self.weight = np.concatenate([self.weight, linear_scale(graph, self_messages, aggregation,
+                                                                    linear_aggregation, mean_degree, dtype)])
         m = graph.n_nodes
         parts = graph.parts or (graph,)
         sizes = np.array([p.n_nodes for p in parts], dtype=np.int64)
@@ -188,9 +188,7 @@ class Plan:
                 self.order = locality_order(self.csr, force=ordering == "rcm")
             if self.order is not None:
                 self.csr = renumbered(self.csr, self.order)
-                self.weight = self.weight[:m][self.order]
-                self._linear = None if self._linear is None else self._linear[self.order]
-                self._join_linear()
+                self.weight = self.weight.reshape(-1, m)[:, self.order].ravel()  # both halves, if two
             return
         target = m / n_blocks
         # Greedy: whole parts into blocks of about `target` nodes, closing a block early
@@ -223,12 +221,6 @@ class Plan:
             self.dense_off[b] = seen[id(g)]
         self.dense_A = np.concatenate(mats) if mats else np.zeros(0, dtype=dtype)
         self.dense_AT = np.concatenate(mats_t) if mats_t else np.zeros(0, dtype=dtype)
-
-
-    def _join_linear(self):
-        """weight = [the MLP's weights, the linear path's scales] when the path has its own."""
-        if self._linear is not None:
-            self.weight = np.concatenate([self.weight[:len(self._linear)], self._linear])
 
     @property
     def transposed(self):

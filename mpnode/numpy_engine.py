@@ -74,8 +74,8 @@ def make_field(spec, theta, graph):
             return (h1 + h0) @ p["W_out"] + p["b_out"]
 
         return l2s_field
-    own = getattr(spec, "linear_aggregation", None)  # the linear path's own aggregate, from the messages
-    linear = aggregator(spec, graph, theta.dtype, own) if spec.linear_aggregate and own else None
+    own = spec.own_linear_aggregation  # the linear path's own aggregate, from the messages
+    linear = None if own is None else aggregator(spec, graph, theta.dtype, own)
 
     def mpnode_field(z, u):
         x, m = z[:, :dx], z[:, dx:]
