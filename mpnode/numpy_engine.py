@@ -74,7 +74,9 @@ def make_field(spec, theta, graph):
             return (h1 + h0) @ p["W_out"] + p["b_out"]
 
         return l2s_field
-    own = spec.own_linear_aggregation  # the linear path's own aggregate, from the messages
+    # The linear path's own aggregate of the messages, read from the attributes alone (this path
+    # must reproduce a model from its file, without mpnode's FieldSpec).
+    own = spec.linear_aggregation if spec.linear_aggregate else None
     linear = None if own is None else aggregator(spec, graph, theta.dtype, own)
 
     def mpnode_field(z, u):
