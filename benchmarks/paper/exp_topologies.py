@@ -62,8 +62,8 @@ def analyse(ctx):
         "*nMSE* is `mpnode eval`'s metric: squared error / the variance of each state dimension over the test",
         "file, averaged over trajectories, nodes and steps 1..T. *MSE, z-scored units* divides by the",
         "training set's standard deviation instead -- the units of the Julia code's losses (microsoft/MPNODE.jl), and our best",
-        "reading of what Table 1 reports (the paper's full text is not in our reference library to",
-        "confirm it; the reading at the top of benchmarks/paper/RESULTS.md discusses the difference).",
+        "reading of what Table 1 reports (the paper does not name its units; the reading at the top of",
+        "benchmarks/paper/RESULTS.md argues it).",
         "",
         grid,
     ]
