@@ -1,6 +1,6 @@
 """Run the whole paper suite: every experiment's trainings, analyses and figures -> RESULTS.md.
 
-    python benchmarks/paper/run_all.py            # full run (about 3 hours on 2 cores from nothing)
+    python benchmarks/paper/run_all.py            # full run (about 5.5 hours on 2 cores from nothing; minutes when cached)
     python benchmarks/paper/run_all.py --quick    # CI-sized smoke run (a few minutes) into benchmarks/paper/quick/
 
 Each experiment also runs alone (python benchmarks/paper/exp_NAME.py [--quick]); trained
