@@ -185,7 +185,6 @@ def fig9_sentence(ctx, ft, sc, labels):
 
 def hold_errors(ctx):
     """nMSE of holding the initial state on the quad3 and quad6 test sets."""
-
     return {"quad3": hold_nmse(ctx.data(q3_test(ctx.mode))), "quad6": hold_nmse(ctx.data(q6_test(ctx.mode)))}
 
 
