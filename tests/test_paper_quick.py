@@ -109,3 +109,28 @@ def test_speed_against_error_obeys_the_numerics(quick_run):
         e32, e64 = errors("MP-NODE, batch", "float32"), errors("MP-NODE, batch", "float64")
         assert all(math.isclose(a, b, rel_tol=1e-2) for a, b in zip(e32, e64)), (system, e32, e64)
         assert all(r["seconds_per_trajectory"] > 0 for r in rows)
+
+
+def test_short_run_trains_a_share_of_every_full_run_on_the_same_data():
+    """--short is the full run scaled down: the same runs, data and settings, SHARE of each epoch
+    count and wall-time budget, so that its tables compare with RESULTS.md's."""
+    import importlib
+
+    sys.path.insert(0, str(SUITE.parent))
+    try:
+        common = importlib.import_module("common")
+        def specs(mode):
+            return {s.name: s for name in common.EXPERIMENTS for s in importlib.import_module(name).runs(mode)}
+        full, short = specs(common.Mode("full")), specs(common.Mode("short"))
+    finally:
+        sys.path.remove(str(SUITE.parent))
+    share = common.SHORT_SHARE
+    assert set(full) == set(short)
+    for name, f in full.items():
+        s = short[name]
+        limit = dict(f.extra).get("time_limit")
+        assert (s.train, s.test, s.init_from, s.test_points) == (f.train, f.test, f.init_from, f.test_points), name
+        if limit is None:
+            assert s.epochs == round(f.epochs * share), name
+        else:
+            assert dict(s.extra)["time_limit"] == pytest.approx(limit * share) and s.epochs == f.epochs, name

@@ -44,18 +44,39 @@ PAPER_EPOCHS = 4000
 # ---------------------------------------------------------------------------
 # Mode
 # ---------------------------------------------------------------------------
+#: the share of the full run's epochs and wall-time budgets that a short run trains
+SHORT_SHARE = 0.25
+
+
 @dataclass(frozen=True)
 class Mode:
-    """quick: CI-sized smoke run (minutes); full: the figures of RESULTS.md (under an hour on 2 cores)."""
+    """The suite's size.  full: RESULTS.md (about 5.5 hours on 2 cores from nothing); short: every
+    table and figure on the full run's data with a quarter of its epochs and wall-time budgets
+    (under two hours: a check of the directions, under-trained); quick: a CI-sized smoke run."""
 
-    quick: bool
-
-    def pick(self, full, quick):
-        return quick if self.quick else full
+    name: str = "full"
 
     @property
-    def name(self):
-        return "quick" if self.quick else "full"
+    def quick(self):
+        return self.name == "quick"
+
+    def pick(self, full, quick):
+        """A data size or count: the full run's (a short run's too) or the quick run's."""
+        return quick if self.quick else full
+
+    def epochs(self, full, quick):
+        """An epoch count: a short run trains SHORT_SHARE of the full run's."""
+        if self.name == "short":
+            return max(1, round(full * SHORT_SHARE))
+        return self.pick(full, quick)
+
+    def minutes(self, full):
+        """A wall-time budget in minutes (a quick run has none: it counts epochs)."""
+        return None if self.quick else full * (SHORT_SHARE if self.name == "short" else 1)
+
+    def time_limit(self, full_minutes):
+        """The `mpnode train` options of a wall-time budget of ``full_minutes`` in the full run."""
+        return () if self.quick else (("time_limit", self.minutes(full_minutes) * 60),)
 
 
 # ---------------------------------------------------------------------------
@@ -516,18 +537,23 @@ def run_line(res):
 # ---------------------------------------------------------------------------
 def parse_args(argv, description):
     p = argparse.ArgumentParser(description=description)
-    p.add_argument("--quick", action="store_true", help="CI-sized smoke run (tiny data, a few epochs)")
+    tier = p.add_mutually_exclusive_group()
+    tier.add_argument("--quick", action="store_true", help="CI-sized smoke run (tiny data, a few epochs)")
+    tier.add_argument("--short", action="store_true",
+                      help=f"every table and figure with {SHORT_SHARE:.0%} of the full run's epochs and wall-time "
+                           "budgets, on the same data (under two hours on 2 cores)")
     p.add_argument("--out", type=Path, default=None,
                    help="where RESULTS.md, figures/ and work/ go (default: benchmarks/paper for the full "
-                        "run, benchmarks/paper/quick for --quick)")
+                        "run, benchmarks/paper/short or benchmarks/paper/quick for the others)")
     p.add_argument("--jobs", type=int, default=2, help="trainings at once (each single-threaded; 1: in-process)")
     p.add_argument("--force", action="store_true", help="retrain and regenerate even what is cached")
     p.add_argument("--scheduler", default=os.environ.get("MPNODE_SCHEDULER"),
                    help="run data generation and trainings on Dask: local, tcp://HOST:8786 or a scheduler file "
                         "(default $MPNODE_SCHEDULER, else the local pool); the workers must see OUT/work")
     args = p.parse_args(argv)
+    args.tier = "quick" if args.quick else "short" if args.short else "full"
     if args.out is None:
-        args.out = HERE / "quick" if args.quick else HERE
+        args.out = HERE if args.tier == "full" else HERE / args.tier
     return args
 
 
@@ -536,7 +562,7 @@ def main(experiments, argv=None, description="MP-NODE paper suite"):
     import importlib
 
     args = parse_args(argv, description)
-    mode = Mode(args.quick)
+    mode = Mode(args.tier)
     out = args.out.resolve()
     work = out / "work"
     ctx = Context(mode, out, work, out / "figures")
@@ -588,8 +614,13 @@ def write_results(out, mode, argv, seconds, jobs):
             + (f"Trainings ran {jobs} at a time, one numba thread each. " if jobs > 1 else "")
             + f"The {len(results)} trainings took {train_min:.0f} core-minutes in all. "
             + "Numbers per experiment are in `results/*.json`.", ""]
+    if mode.name == "short":
+        head += [f"A short run: {SHORT_SHARE:.0%} of the full run's epochs and wall-time budgets, on the same data, so "
+                 "its models are under-trained. Section titles and the reading name the full run's budgets; each "
+                 "section's text states what this run used. `benchmarks/paper/RESULTS.md` (the full run) is the "
+                 "reference; this one shows which of its directions already hold at a quarter of the cost.", ""]
     reading = HERE / "reading.md"
-    if not mode.quick and reading.exists() and out == HERE:
+    if mode.name == "full" and reading.exists() and out == HERE:
         head += [reading.read_text().strip(), ""]
     sections = [out / "sections" / f"{name}.md" for name in EXPERIMENTS]
     body = [p.read_text().strip() + "\n" for p in sections if p.exists()]

@@ -48,14 +48,14 @@ def run_specs(mode):
     train = (DataSpec("gene16_ba_multi", mode.pick(500, 10), 0),)
     out = []
     for name, _, settings in VARIANTS:
-        extra = settings.get("extra", ()) + ((("time_limit", MINUTES * 60),) if not mode.quick else ())
+        extra = settings.get("extra", ()) + mode.time_limit(MINUTES)
         out.append(RunSpec(name, train, mode.pick(100_000, 3), **{**settings, "extra": extra}))
     return out
 
 
 def hot_run_specs(mode):
     train = (DataSpec("gene16_ba_multi_hot", mode.pick(500, 10), 0),)
-    return [RunSpec(name, train, mode.pick(HOT_EPOCHS, 3), **settings) for name, _, settings in HOT_VARIANTS]
+    return [RunSpec(name, train, mode.epochs(HOT_EPOCHS, 3), **settings) for name, _, settings in HOT_VARIANTS]
 
 
 def gene64_data(mode):
@@ -81,7 +81,7 @@ PAPER_TABLE2 = {"gene64_ft_default": 12.53, "gene64_scratch_default": 28.0, "gen
 
 def gene64_runs(mode):
     """gene16 -> gene64 (Table 2's gene column): each gene16 model fine-tuned, and from scratch."""
-    common = dict(train=(DataSpec("gene64_ba", mode.pick(100, 6), 0),), epochs=mode.pick(600, 4),
+    common = dict(train=(DataSpec("gene64_ba", mode.pick(100, 6), 0),), epochs=mode.epochs(600, 4),
                   test=DataSpec("gene64_ba", mode.pick(100, 4), 1), test_points=mode.pick(10, 2))
     return [
         ("gene64_ft_default", "MP-NODE (defaults), fine-tuned from gene16",
@@ -141,7 +141,7 @@ def analyse(ctx):
     numbers["hold_initial_state"] = dict(holds)
     res0 = ctx.result(VARIANTS[0][0])
     budget = (f"{res0['epochs']} epochs" if ctx.mode.quick else
-              f"{MINUTES} minutes of wall time (two trainings at a time, one numba thread each)")
+              f"{ctx.mode.minutes(MINUTES):g} minutes of wall time (two trainings at a time, one numba thread each)")
     text = [
         f"Each model trains for {budget} on "
         f"{res0['train_trajectories']} trajectories of gene16_ba_multi; test sets as in experiment 2 "

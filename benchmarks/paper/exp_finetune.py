@@ -64,14 +64,14 @@ def cases(mode):
         for n in SIZES if scene == "lorenz10" else sizes:  # quick: three sizes of the same 6 trajectories
             out.append((f"{scene}_{{}}_{n}", f"Lorenz3 -> Lorenz10 ({what}), {n} trajectories",
                         DataSpec(scene, mode.pick(n, 6), 0), DataSpec(scene, mode.pick(200, 5), 1),
-                        exp_more_nodes.run_spec(mode), mode.pick(epochs, 4), lrs, panel, ("lorenz", n)))
+                        exp_more_nodes.run_spec(mode), mode.epochs(epochs, 4), lrs, panel, ("lorenz", n)))
     out.append(("gene64_{}", "gene16 (BA x5) -> gene64 (BA), 100 trajectories",
                 DataSpec("gene64_ba", mode.pick(100, 6), 0), DataSpec("gene64_ba", mode.pick(100, 4), 1),
-                exp_topologies.run_spec(mode), mode.pick(600, 4), (1e-3,), "5b", ("gene", 100)))
+                exp_topologies.run_spec(mode), mode.epochs(600, 4), (1e-3,), "5b", ("gene", 100)))
     for n in sizes:
         out.append((f"kuramoto_er_{{}}_{n}", f"Kuramoto10 BA -> ER, {n} trajectories",
                     DataSpec("kuramoto10_er", mode.pick(n, 6), 0), DataSpec("kuramoto10_er", mode.pick(200, 5), 1),
-                    exp_messages.run_spec(mode, "kuramoto", False), mode.pick(1000, 4), (1e-3,), "5c",
+                    exp_messages.run_spec(mode, "kuramoto", False), mode.epochs(1000, 4), (1e-3,), "5c",
                     ("kuramoto", n)))
     return out
 

@@ -36,7 +36,7 @@ def run_spec(mode, key, zero, message_dim=3):
     """The run of ``key`` with messages (or zero messages); exp_message_size reuses it."""
     _, _, (e_full, e_quick) = SYSTEMS[key]
     suffix = "zero" if zero else f"dm{message_dim}"
-    return RunSpec(f"{key}_{suffix}", (train_data(mode, key),), mode.pick(e_full, e_quick),
+    return RunSpec(f"{key}_{suffix}", (train_data(mode, key),), mode.epochs(e_full, e_quick),
                    message_dim=message_dim, zero_messages=zero)
 
 

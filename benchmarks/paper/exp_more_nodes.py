@@ -15,8 +15,8 @@ SIZES = (3, 7, 10)
 
 def run_spec(mode):
     """The Lorenz3 model (horizon curriculum 5, 10, full); exp_finetune starts from it."""
-    return RunSpec("lorenz3", (DataSpec("lorenz3", mode.pick(1000, 12), 0),), mode.pick(3000, 4),
-                   curriculum=(5, 10), curriculum_epochs=mode.pick(150, 1))
+    return RunSpec("lorenz3", (DataSpec("lorenz3", mode.pick(1000, 12), 0),), mode.epochs(3000, 4),
+                   curriculum=(5, 10), curriculum_epochs=mode.epochs(150, 1))
 
 
 def test_data(mode, k):

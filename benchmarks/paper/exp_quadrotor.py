@@ -43,7 +43,7 @@ def q6_test(mode):
 
 def source_runs(mode):
     """The quad3 models (name -> RunSpec), each for the same wall time."""
-    budget = () if mode.quick else (("time_limit", MINUTES * 60),)
+    budget = mode.time_limit(MINUTES)
     epochs = mode.pick(100_000, 3)
     specs = [RunSpec(f"q3_m{m}", (q3_train(mode),), epochs, message_dim=m, extra=budget) for m in DIMS]
     specs.append(RunSpec("q3_m20_scaled", (q3_train(mode),), epochs, message_dim=20, aggregation="scaled",
@@ -54,7 +54,7 @@ def source_runs(mode):
 
 def target_runs(mode):
     """The quad6 runs: (name, label, RunSpec)."""
-    common = dict(train=(q6_train(mode),), epochs=mode.pick(4000, 4), test=q6_test(mode),
+    common = dict(train=(q6_train(mode),), epochs=mode.epochs(4000, 4), test=q6_test(mode),
                   test_points=mode.pick(10, 2))
     return [
         ("q6_ft_m20", "MP-NODE 20, fine-tuned from quad3", RunSpec("q6_ft_m20", init_from="q3_m20", message_dim=20,
@@ -94,7 +94,7 @@ def analyse(ctx):
     fig9, numbers["fig9"] = fig9_finetune(ctx)
     hold = hold_errors(ctx)
     numbers["hold_initial_state"] = hold
-    budget = "3 epochs" if ctx.mode.quick else f"{MINUTES} minutes of wall time each (two at a time, one thread each)"
+    budget = "3 epochs" if ctx.mode.quick else f"{ctx.mode.minutes(MINUTES):g} minutes of wall time each (two at a time, one thread each)"
     text = [
         f"quad3 models ({ctx.result('q3_m20')['train_trajectories']} trajectories, {budget}); test sets: "
         f"{ctx.data(q3_test(ctx.mode)).n_trajectories} fresh quad3 and {ctx.data(q6_test(ctx.mode)).n_trajectories}"

@@ -32,7 +32,7 @@ def test_data(mode, key):
 
 
 def run_spec(mode, key, schedule):
-    extra = (("schedule", schedule),) + ((("time_limit", MINUTES * 60),) if not mode.quick else ())
+    extra = (("schedule", schedule),) + mode.time_limit(MINUTES)
     return RunSpec(f"sched_{key}_{schedule}", (train_data(mode, key),), mode.pick(100_000, 3), recipe="auto",
                    extra=extra)
 
@@ -67,7 +67,7 @@ def analyse(ctx):
         ax.legend()
     numbers["cosine_wins"] = int(wins)
     link = ctx.figure(fig, "schedule_val_loss")
-    budget = "3 epochs" if ctx.mode.quick else f"{MINUTES} minutes of wall time"
+    budget = "3 epochs" if ctx.mode.quick else f"{ctx.mode.minutes(MINUTES):g} minutes of wall time"
     text = [
         f"Each run: `mpnode train` defaults (recipe auto) and the schedule, for {budget} (two trainings at a "
         "time, one numba thread each); test sets: fresh trajectories (seed 1) of the training scene.",

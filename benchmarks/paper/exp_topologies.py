@@ -17,7 +17,7 @@ FRESH_SEEDS = (6, 7, 8, 9, 10)
 
 def run_spec(mode):
     """The gene16 model on five BA graphs; exp_finetune starts its gene64 runs from it."""
-    return RunSpec("gene16_ba5", (DataSpec("gene16_ba_multi", mode.pick(500, 10), 0),), mode.pick(4000, 4))
+    return RunSpec("gene16_ba5", (DataSpec("gene16_ba_multi", mode.pick(500, 10), 0),), mode.epochs(4000, 4))
 
 
 def test_data(mode, kind):
