@@ -52,7 +52,7 @@ SHORT_SHARE = 0.25
 class Mode:
     """The suite's size.  full: RESULTS.md (about 5.5 hours on 2 cores from nothing); short: every
     table and figure on the full run's data with a quarter of its epochs and wall-time budgets
-    (under two hours: a check of the directions, under-trained); quick: a CI-sized smoke run."""
+    (77 minutes from nothing on 2 cores: under-trained, a check of the directions); quick: a CI-sized smoke run."""
 
     name: str = "full"
 
@@ -541,7 +541,7 @@ def parse_args(argv, description):
     tier.add_argument("--quick", action="store_true", help="CI-sized smoke run (tiny data, a few epochs)")
     tier.add_argument("--short", action="store_true",
                       help=f"every table and figure with {SHORT_SHARE:.0%} of the full run's epochs and wall-time "
-                           "budgets, on the same data (under two hours on 2 cores)")
+                           "budgets, on the same data (77 minutes on 2 cores from nothing)")
     p.add_argument("--out", type=Path, default=None,
                    help="where RESULTS.md, figures/ and work/ go (default: benchmarks/paper for the full "
                         "run, benchmarks/paper/short or benchmarks/paper/quick for the others)")
