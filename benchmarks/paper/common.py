@@ -74,6 +74,11 @@ class Mode:
         """A wall-time budget in minutes (a quick run has none: it counts epochs)."""
         return None if self.quick else full * (SHORT_SHARE if self.name == "short" else 1)
 
+    def wall_time(self, full_minutes):
+        """The words for a wall-time budget of ``full_minutes`` in the full run (e.g. "2.5 minutes")."""
+        m = self.minutes(full_minutes)
+        return f"{m:g} minute{'' if m == 1 else 's'} of wall time"
+
     def time_limit(self, full_minutes):
         """The `mpnode train` options of a wall-time budget of ``full_minutes`` in the full run."""
         return () if self.quick else (("time_limit", self.minutes(full_minutes) * 60),)

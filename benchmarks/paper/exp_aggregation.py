@@ -141,7 +141,7 @@ def analyse(ctx):
     numbers["hold_initial_state"] = dict(holds)
     res0 = ctx.result(VARIANTS[0][0])
     budget = (f"{res0['epochs']} epochs" if ctx.mode.quick else
-              f"{ctx.mode.minutes(MINUTES):g} minutes of wall time (two trainings at a time, one numba thread each)")
+              f"{ctx.mode.wall_time(MINUTES)} (two trainings at a time, one numba thread each)")
     text = [
         f"Each model trains for {budget} on "
         f"{res0['train_trajectories']} trajectories of gene16_ba_multi; test sets as in experiment 2 "

@@ -57,7 +57,7 @@ def analyse(ctx):
     node = ctx.model(node_run(ctx.mode, "kuramoto10").name)
     message = refusal(node, node.spec.n_nodes + 3)
     numbers["refusal"] = message
-    budget = "3 epochs" if ctx.mode.quick else f"{ctx.mode.minutes(exp_schedule.MINUTES):g} minutes of wall time"
+    budget = "3 epochs" if ctx.mode.quick else ctx.mode.wall_time(exp_schedule.MINUTES)
     text = [
         f"Each model: {budget}, `mpnode train` defaults (recipe auto), test sets of experiment 8. The NODE sees",
         "the whole system's state (node-major) and no graph: on gene16's five BA graphs it cannot tell them apart.",

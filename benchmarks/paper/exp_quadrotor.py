@@ -94,7 +94,7 @@ def analyse(ctx):
     fig9, numbers["fig9"] = fig9_finetune(ctx)
     hold = hold_errors(ctx)
     numbers["hold_initial_state"] = hold
-    budget = "3 epochs" if ctx.mode.quick else f"{ctx.mode.minutes(MINUTES):g} minutes of wall time each (two at a time, one thread each)"
+    budget = "3 epochs" if ctx.mode.quick else ctx.mode.wall_time(MINUTES) + " each (two at a time, one thread each)"
     text = [
         f"quad3 models ({ctx.result('q3_m20')['train_trajectories']} trajectories, {budget}); test sets: "
         f"{ctx.data(q3_test(ctx.mode)).n_trajectories} fresh quad3 and {ctx.data(q6_test(ctx.mode)).n_trajectories}"

@@ -67,7 +67,7 @@ def analyse(ctx):
         ax.legend()
     numbers["cosine_wins"] = int(wins)
     link = ctx.figure(fig, "schedule_val_loss")
-    budget = "3 epochs" if ctx.mode.quick else f"{ctx.mode.minutes(MINUTES):g} minutes of wall time"
+    budget = "3 epochs" if ctx.mode.quick else ctx.mode.wall_time(MINUTES)
     text = [
         f"Each run: `mpnode train` defaults (recipe auto) and the schedule, for {budget} (two trainings at a "
         "time, one numba thread each); test sets: fresh trajectories (seed 1) of the training scene.",

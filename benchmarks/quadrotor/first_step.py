@@ -17,6 +17,7 @@ import argparse
 import numpy as np
 
 from mpnode.data import read_trajectories
+from mpnode.metrics import normalised_sq_error
 from mpnode.model import Model
 
 M_Q, M_L = 1.0, 0.9  # kg, spec quadrotor.md
@@ -37,8 +38,8 @@ def vertical_pull(x0, x1, u0, dt, g_z):
 
 
 def nmse_by_step(pred, x):
-    """[T+1, dx]: squared error over the file's per-dimension variance, averaged over trajectories and nodes."""
-    return ((pred - x) ** 2 / x.var(axis=(0, 1, 2))).mean(axis=(0, 2))
+    """[T+1, dx]: `mpnode eval`'s normalised squared error, averaged over trajectories and nodes."""
+    return normalised_sq_error(pred, x).mean(axis=(0, 2))
 
 
 def main():
@@ -55,7 +56,7 @@ def main():
         n, name = x.shape[2], path.split("/")[-1]
         true = vertical_pull(x[:, 0], x[:, 1], u[:, 0], traj.dt, g_z)
         ours = vertical_pull(x[:, 0], pred[:, 1], u[:, 0], traj.dt, g_z)
-        pulls.append(f"| {name} | {n} | {-M_L * 9.81 / n:.2f} | {true.mean():.2f} +- {true.std():.2f} | "
+        pulls.append(f"| {name} | {n} | {M_L * g_z / n:.2f} | {true.mean():.2f} +- {true.std():.2f} | "
                      f"{ours.mean():.2f} +- {ours.std():.2f} |")
         e, hold = nmse_by_step(pred, x), nmse_by_step(np.broadcast_to(x[:, :1], x.shape), x)
         for label, rows in [("all", e), *((b, e[:, s]) for b, s in BLOCKS.items()), ("hold x0", hold)]:
