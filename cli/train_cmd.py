@@ -331,7 +331,9 @@ def _evaluate_on_fresh(scene, model, output, seed):
 @click.argument("model_file", metavar="MODEL", type=click.Path(dir_okay=False))
 @click.argument("data", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("--refit-norm", is_flag=True,
-              help="Fit the normalisation on the new training split instead of keeping the model's.")
+              help="Fit the normalisation on the new training split instead of keeping the model's; the weights "
+                   "change with it so that the model starts from the same predictions, and the loss weighs each "
+                   "state dimension by the new data's spread (as `mpnode eval` does).")
 @training_options
 def finetune_cmd(model_file, data, refit_norm, **o):
     """Continue training MODEL on DATA... and write the result to OUTPUT.

@@ -21,6 +21,7 @@ import numpy as np
 
 from .errors import InputError
 from .graph import block_diagonal
+from .renormalise import renormalised
 
 
 def check_data(model, datasets, sources, allow_dt_mismatch=False):
@@ -180,16 +181,23 @@ class Part:
 
 
 def prepare(model, datasets, config):
-    """Split, normalise (fitting the constants on the training split if config.norm == "fit")
-    and add noise; returns (train parts, val parts, split) with split[f] = (train idx, val idx).
+    """Split, normalise and add noise; returns (train parts, val parts, split) with
+    split[f] = (train idx, val idx).
 
-    Modifies ``model``'s normalisation constants when fitting.
+    config.norm "fit" sets ``model``'s constants to the training split's (a new model);
+    "refit" does too, and changes the weights so that the model computes what it did
+    (mpnode.renormalise: a trained model fine-tuned on data of another spread); "keep" leaves them.
+    Modifies ``model`` in place unless "keep".
     """
     split = make_split(datasets, config)
-    if config.norm == "fit":
-        model.x_mean, model.x_std = fit_normalization([np.asarray(t.x)[tr] for t, (tr, _) in zip(datasets, split)])
+    if config.norm in ("fit", "refit"):
+        x_mean, x_std = fit_normalization([np.asarray(t.x)[tr] for t, (tr, _) in zip(datasets, split)])
+        u_mean, u_std = model.u_mean, model.u_std
         if model.spec.control_dim:
-            model.u_mean, model.u_std = fit_normalization([np.asarray(t.u)[tr] for t, (tr, _) in zip(datasets, split)])
+            u_mean, u_std = fit_normalization([np.asarray(t.u)[tr] for t, (tr, _) in zip(datasets, split)])
+        if config.norm == "refit":
+            model.theta[:] = renormalised(model, x_mean, x_std, u_mean, u_std).theta
+        model.x_mean, model.x_std, model.u_mean, model.u_std = x_mean, x_std, u_mean, u_std
     train, val = [], []
     for f, (traj, (tr, va)) in enumerate(zip(datasets, split)):
         rng = np.random.default_rng([config.seed, 3, f])

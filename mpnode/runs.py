@@ -132,7 +132,7 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, resum
     and (unless ``refit_norm``) normalisation; model options other than substeps are the model's.
     names, parent_name : what to call the data files and the model in attributes (see `train`)."""
     datasets = datasets or read_all(paths)
-    model_options, config = split_options({"norm": "fit" if refit_norm else "keep", **(options or {})})
+    model_options, config = split_options({"norm": "refit" if refit_norm else "keep", **(options or {})})
     fixed = {k for k, v in (options or {}).items() if k in MODEL_OPTIONS and k != "substeps"}
     if fixed:
         raise InputError("options", sorted(fixed)[0], "cannot change when fine-tuning",

@@ -41,6 +41,8 @@ from .train_log import TrainLog
 
 STATE_VERSION = 1
 SCHEDULES = ("plateau", "cosine")
+#: how training treats the model's normalisation constants (mpnode.batches.prepare)
+NORMS = ("fit", "refit", "keep")
 
 
 @dataclass
@@ -49,7 +51,8 @@ class TrainConfig:
 
     time_limit is the run's total training time in seconds (None: no limit; a resumed run
     counts the time before it, as epochs counts the epochs before it); norm is "fit"
-    (z-score constants fitted on the training split) or "keep" (the model's own constants,
+    (z-score constants fitted on the training split), "refit" (the same for a trained model,
+    whose weights are changed to compute what they did) or "keep" (the model's own constants,
     for finetuning); schedule is "plateau" (cut the learning rate by lr_decay after
     ``patience`` epochs without a new best) or "cosine" (from lr down to min_lr over the
     budget: the epochs, or the time limit when that comes first); val_graphs: hold out
@@ -107,8 +110,8 @@ class TrainConfig:
             bad("loss", f"is {self.loss!r}", " or ".join(losses.LOSSES))
         if self.clip_mode not in CLIP_MODES:
             bad("clip_mode", f"is {self.clip_mode!r}", " or ".join(CLIP_MODES))
-        if self.norm not in ("fit", "keep"):
-            bad("norm", f"is {self.norm!r}", "'fit' or 'keep'")
+        if self.norm not in NORMS:
+            bad("norm", f"is {self.norm!r}", " or ".join(map(repr, NORMS)))
         if self.patience < 1:
             bad("patience", f"is {self.patience}", "an integer >= 1")
         if not (0 < self.lr_decay <= 1):
@@ -502,6 +505,7 @@ def first_epoch(state, validate):
     """Epoch 0: the initial validation loss becomes the first best and the blow-up reference."""
     v0, nmse0 = validate(state.model.spec, state.theta)
     state.best_val = state.ref_loss = v0 if math.isfinite(v0) else math.inf
+    state.best_theta = state.theta.copy()  # the weights just validated: a refit changed them since the state was made
     return {"epoch": 0, "train_loss": None, "val_loss": v0, "val_nmse": nmse0, "best_val_loss": state.best_val,
             "grad_norm": None,
             "lr": state.opt.lr, "seconds": 0.0, "elapsed": 0.0, "skipped_steps": 0, "improved": True,

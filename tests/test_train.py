@@ -105,6 +105,25 @@ def test_finetune_starts_from_exactly_the_given_weights(tmp_path):
     assert r.history[0]["val_loss"] == pytest.approx(train.Validator(va, "huber")(m0.spec, m0.theta)[0], rel=1e-12)
 
 
+def test_refit_finetune_starts_from_the_same_predictions_on_the_new_constants(tmp_path):
+    """norm "refit": the constants become the new training split's, the weights change, and
+    the saved model (epochs 0) predicts what the source did (float64)."""
+    src = fresh(seed=5).copy(np.float64)
+    src.x_mean, src.x_std = np.array([0.1, -0.2]), np.array([0.7, 0.9])
+    traj = tiny_linear()
+    out = tmp_path / "ft.h5"
+    train.fit(src, [traj], train.TrainConfig(epochs=0, norm="refit"), out)
+    saved = Model.load(out)
+    fitted = batches.prepare(fresh(seed=5), [traj], train.TrainConfig(norm="fit"))[2]
+    want_mean, want_std = batches.fit_normalization([np.asarray(traj.x)[fitted[0][0]]])
+    np.testing.assert_allclose(saved.x_std, want_std)
+    np.testing.assert_allclose(saved.x_mean, want_mean)
+    assert not np.allclose(saved.theta, src.theta)
+    x0 = np.asarray(traj.x)[:, 0]
+    np.testing.assert_allclose(saved.rollout(x0, traj.graphs[0], steps=5), src.rollout(x0, traj.graphs[0], steps=5),
+                               rtol=1e-10, atol=1e-10)
+
+
 def test_saved_model_reloads_bit_for_bit_and_rolls_out_identically(tmp_path):
     traj = tiny_linear()
     out = tmp_path / "m.h5"
