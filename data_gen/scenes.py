@@ -107,7 +107,7 @@ BUILTIN = {
         *(_gene(n, kind, initial="hotspots") for n in (16, 64) for kind in ("er", "ba", "ws")),
         _gene(16, "ba", seeds=(1, 2, 3, 4, 5), initial="hotspots"),
         *(_kuramoto(kind) for kind in ("er", "ba", "ws")),
-        *(_quad(n) for n in (3, 6)),
+        *(_quad(n) for n in (3, 4, 5, 6)),
     ]
 }
 

@@ -14,7 +14,8 @@ EXAMPLE = os.path.join(os.path.dirname(mpnode.data_gen.__file__), "scenes", "exa
 EXPECTED = ["coupled_pendulum", "lorenz3", "lorenz7", "lorenz10", "lorenz10_medium", "lorenz10_high", "lorenz10_10s",
             "gene16_er", "gene16_ba", "gene16_ws", "gene64_er", "gene64_ba", "gene64_ws", "gene16_ba_multi",
             "gene16_er_hot", "gene16_ba_hot", "gene16_ws_hot", "gene64_er_hot", "gene64_ba_hot", "gene64_ws_hot",
-            "gene16_ba_multi_hot", "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws", "quad3", "quad6"]
+            "gene16_ba_multi_hot", "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws", "quad3", "quad4",
+            "quad5", "quad6"]
 
 
 def test_builtin_scenes():
