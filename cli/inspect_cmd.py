@@ -49,8 +49,7 @@ def _model_text(file, s):
              f"{s['parameters']} parameters ({s['dtype']})",
              f"messages:    {agg}" + (", self-messages" if s["self_messages"] else "")
              + (", clamped to zero" if s["zero_messages"] else "")
-             + (linear + ")" if s["linear_aggregate"] else "")
-             + (", linear own-state path (W_state, adds to dx/dt)" if s["linear_state"] else ""),
+             + (linear + ")" if s["linear_aggregate"] else ""),
              f"integration: RK4, dt={s['dt']:g}, {s['substeps']} substep(s) per dt",
              "arrays:      " + ", ".join(f"{k} {v}" for k, v in s["arrays"].items()),
              "attributes:  " + ("" if s["attrs"] else "none")]

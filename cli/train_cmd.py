@@ -231,10 +231,6 @@ def print_validation(result, datasets, sources):
               help="What the linear path adds to: all (dx/dt and the messages' dm/dt; the default) or state "
                    "(dx/dt alone, so the messages' own dynamics never hear the degree; implies "
                    "--linear-aggregate).")
-@click.option("--linear-state/--no-linear-state", default=False,
-              help="Also feed the node's own state straight to dx/dt, around the MLP (+ x W_state, W_state "
-                   "starting at 0): a decay such as the gene's -b x then keeps its slope on states beyond those "
-                   "of the training data (mpnode; docs/model-format.md).")
 @click.option("--zero-messages", is_flag=True, help="Clamp messages to 0 (the paper's ablation).")
 @click.option("--self-messages", is_flag=True,
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")

@@ -54,9 +54,6 @@ class FieldSpec:
         linear_aggregation "scaled": the MLP sees a degree-free input that stays in range on
         denser graphs, and the degree reaches the field only through the linear path
         (as PNA's degree scalers)
-    linear_state : (mpnode only) dx/dt also gets x @ W_state, a path linear in the node's own
-        (normalised) state around the MLP, so that a decay such as the gene's -b x keeps its
-        slope on states beyond those the tanh units were fitted on
     """
 
     state_dim: int
@@ -74,7 +71,6 @@ class FieldSpec:
     linear_aggregate: bool = False
     linear_aggregation: str = None
     linear_target: str = "all"
-    linear_state: bool = False
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -98,20 +94,17 @@ class FieldSpec:
             raise ValueError(f"a {self.kind} model has no message state (message_dim 0, no zero_messages)")
         if (self.kind == "node") != (self.n_nodes is not None):
             raise ValueError("n_nodes goes with kind 'node' (and only with it)")
-        if self.linear_state and self.kind != "mpnode":
-            raise ValueError("linear_state needs an mpnode model")
         if self.linear_aggregate and (self.kind != "mpnode" or not self.message_dim or self.zero_messages):
             raise ValueError("linear_aggregate needs an mpnode model with messages (message_dim > 0, no zero_messages)")
 
     @property
     def dims(self):
         """The kernels' (kind, dx, du, dm, H, self_msg, zero_msg, linear_agg) tuple (kinds mpnode and l2s);
-        linear_agg: flags of the linear paths (mpnode.kernels.mpnode_field), 1 the aggregate's path is
-        there, 2 it reads its own aggregate (see Plan.weight), 4 it adds to dx/dt alone; 8 the
-        own state's path is there."""
-        flags = 8 if self.linear_state else 0
+        linear_agg: flags, 1 the linear path is there, 2 it reads its own aggregate (see Plan.weight),
+        4 it adds to dx/dt alone (mpnode.kernels.mpnode_field)."""
+        flags = 0
         if self.linear_aggregate:
-            flags |= 1 | (2 if self.own_linear_aggregation else 0) | (4 if self.linear_target == "state" else 0)
+            flags = 1 | (2 if self.own_linear_aggregation else 0) | (4 if self.linear_target == "state" else 0)
         return (KINDS.index(self.kind), self.state_dim, self.control_dim, self.message_dim, self.hidden,
                 int(self.self_messages), int(self.zero_messages), flags)
 

@@ -19,14 +19,12 @@ def param_shapes(spec):
     shapes = {"W1": (din, H), "b1": (H,), "W2": (H, H), "b2": (H,), "W3": (H, dout), "b3": (dout,)}
     if spec.kind == "mpnode" and spec.linear_aggregate:  # last, so the MLP's layout is the same either way
         shapes["W_agg"] = (dm, dx if spec.linear_target == "state" else dout)
-    if spec.kind == "mpnode" and spec.linear_state:
-        shapes["W_state"] = (dx, dx)
     return shapes
 
 
-#: weight matrices that start at zero, not Glorot: the linear paths W_agg and W_state, so that
-#: a model with them starts as the same MLP without them
-ZERO_INIT = ("W_agg", "W_state")
+#: weight matrices that start at zero, not Glorot: W_agg, so that a model with the linear
+#: aggregate path starts as the same MLP without it
+ZERO_INIT = ("W_agg",)
 
 
 def n_params(spec):

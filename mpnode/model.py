@@ -47,7 +47,7 @@ class Model:
     def create(cls, state_dim, control_dim=0, message_dim=3, hidden=32, dt=0.05, substeps=1,
                zero_messages=False, self_messages=False, seed=0, dtype=np.float32, kind="mpnode",
                aggregation=None, mean_degree=None, n_nodes=None, linear_aggregate=False, linear_aggregation=None,
-               linear_target="all", linear_state=False):
+               linear_target="all"):
         """A new model with Glorot-uniform weights and zero biases drawn from ``seed``.
 
         kind "l2s" and "node" have no messages (message_dim is ignored); "node" needs the
@@ -57,7 +57,6 @@ class Model:
         it implies linear_aggregate.  mean_degree goes with "scaled" in either.
         linear_target: "all" (the path adds to [dx/dt, dm/dt]) or "state" (dx/dt alone; it
         implies linear_aggregate).
-        linear_state (mpnode): add the path x W_state to dx/dt, W_state starting at 0.
         """
         linear_target = linear_target or "all"
         linear_aggregate = bool(linear_aggregate or linear_aggregation or linear_target != "all")
@@ -72,8 +71,6 @@ class Model:
             raise InputError("model", "linear_aggregate", f"is asked for a {kind} model with message_dim "
                              f"{message_dim}{' and zero_messages' if zero_messages else ''}",
                              "an mpnode model with messages (message_dim > 0, no zero_messages)")
-        if linear_state and kind != "mpnode":
-            raise InputError("model", "linear_state", f"is asked for a {kind} model", "an mpnode model")
         if kind != "mpnode":
             message_dim, zero_messages = 0, False
         aggregation = aggregation or engine.default_aggregation(kind)
@@ -81,7 +78,7 @@ class Model:
                                 bool(zero_messages), bool(self_messages), kind, aggregation,
                                 None if mean_degree is None else float(mean_degree),
                                 None if n_nodes is None else int(n_nodes), bool(linear_aggregate),
-                                linear_aggregation, linear_target, bool(linear_state))
+                                linear_aggregation, linear_target)
         return cls(layouts.glorot_init(spec, seed=seed, dtype=dtype), spec, attrs={"seed": seed})
 
     @classmethod
@@ -178,7 +175,7 @@ class Model:
                 "message_dim": s.message_dim, "hidden": s.hidden, "n_nodes": s.n_nodes,
                 "aggregation": s.aggregation, "mean_degree": s.mean_degree,
                 "linear_aggregate": s.linear_aggregate, "linear_aggregation": s.linear_aggregation,
-                "linear_target": s.linear_target, "linear_state": s.linear_state,
+                "linear_target": s.linear_target,
                 "dt": s.dt, "substeps": s.substeps,
                 "self_messages": s.self_messages, "zero_messages": s.zero_messages, "dtype": str(self.dtype),
                 "parameters": int(self.theta.size),

@@ -1,5 +1,5 @@
-"""Model files (docs/model-format.md, version 2; 3 for a model with the linear aggregate path,
-4 for one with the linear own-state path; version 1 still reads): validated reader, atomic writer.
+"""Model files (docs/model-format.md, version 2; 3 for a model with the linear aggregate path;
+version 1 still reads): validated reader, atomic writer.
 
 The reader returns what the file holds (spec, flat parameters, normalisation, extra
 attributes) and the writer takes the same; `mpnode.model.Model` makes a model of them.
@@ -16,15 +16,11 @@ FORMAT_VERSION = 2
 #: written only for a model with the linear aggregate path, so that a version-2 reader (which
 #: ignores attributes it does not know) refuses it instead of dropping the path
 LINEAR_PATH_VERSION = 3
-#: written only for a model with the linear own-state path, for the same reason (a version-3
-#: reader would drop W_state)
-STATE_PATH_VERSION = 4
-VERSIONS = (1, FORMAT_VERSION, LINEAR_PATH_VERSION, STATE_PATH_VERSION)
 
 _INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "zero_messages", "self_messages")
 _SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator", "kind",
                                  "aggregation", "mean_degree", "n_nodes", "linear_aggregate",
-                                 "linear_aggregation", "linear_target", "linear_state"}
+                                 "linear_aggregation", "linear_target"}
 
 
 def _is_int(v):
@@ -55,8 +51,8 @@ class _Attrs:
         """The FieldSpec the attributes describe (every rule of the format's root attributes)."""
         need = self.need
         need("format", lambda v: isinstance(v, str) and v == FORMAT, f"'{FORMAT}'")
-        version = need("format_version", lambda v: _is_int(v) and v in VERSIONS,
-                       ", ".join(map(str, VERSIONS)) + " (the versions this reader knows)")
+        version = need("format_version", lambda v: _is_int(v) and v in (1, FORMAT_VERSION, LINEAR_PATH_VERSION),
+                       f"1, {FORMAT_VERSION} or {LINEAR_PATH_VERSION} (the versions this reader knows)")
         need("activation", lambda v: isinstance(v, str) and v == "tanh", "'tanh'")
         need("integrator", lambda v: isinstance(v, str) and v == "rk4", "'rk4' (classic 4-stage)")
         known = engine.KINDS if version > 1 else ("mpnode",)
@@ -89,12 +85,9 @@ class _Attrs:
         self_msg = need("self_messages", flag, "0 or 1", default=0 if kind == "node" else None)
         dt = need("dt", lambda v: _is_number(v) and v > 0, "a number > 0")
         on = self.linear_aggregate(kind, dm, zero)
-        own_state = self.linear_state(kind)
-        if version_of(on, own_state) != max(version, FORMAT_VERSION):  # version 1 had neither path
-            raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(on)} and "
-                             f"linear_state {int(own_state)}",
-                             f"{STATE_PATH_VERSION} exactly when the model has the own-state path (linear_state 1), "
-                             f"else {LINEAR_PATH_VERSION} exactly when it has the linear aggregate path "
+        if (version == LINEAR_PATH_VERSION) != on:
+            raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(on)}",
+                             f"{LINEAR_PATH_VERSION} exactly when the model has the linear aggregate path "
                              f"(linear_aggregate 1), {FORMAT_VERSION} otherwise")
         if linear is not None and not on:
             raise InputError(self.path, "linear_aggregation", f"is {linear!r} without linear_aggregate 1",
@@ -106,7 +99,7 @@ class _Attrs:
             raise InputError(self.path, "linear_target", f"is {target!r} without linear_aggregate 1",
                              "no linear_target, or linear_aggregate 1 (the path it says where to add)")
         return engine.FieldSpec(dx, du, dm, hidden, float(dt), substeps, bool(zero), bool(self_msg), kind,
-                                aggregation, mean_degree, n_nodes, on, linear, target, own_state)
+                                aggregation, mean_degree, n_nodes, on, linear, target)
 
     def linear_aggregation(self, aggs):
         """The linear path's own aggregate, or None when absent (the path reads the MLP's)."""
@@ -114,14 +107,6 @@ class _Attrs:
             return None
         return self.need("linear_aggregation", lambda v: isinstance(v, str) and v in aggs,
                          " or ".join(aggs) + " (the aggregations this version knows)")
-
-    def linear_state(self, kind):
-        """The own-state path switch: 0 when absent; 1 only for an mpnode model."""
-        flag = lambda v: isinstance(v, (int, float)) and v in (0, 1)  # noqa: E731
-        on = bool(self.need("linear_state", flag, "0 or 1", default=0))
-        if on and kind != "mpnode":
-            raise InputError(self.path, "linear_state", "is 1", f"0 (a {kind} model has no own-state path)")
-        return on
 
     def linear_aggregate(self, kind, dm, zero):
         """The linear aggregate path switch: 0 when absent (files before it, and every model
@@ -193,9 +178,9 @@ def _dataset(f, path, name, shape):
 
 
 def spec_attrs(spec):
-    """The root attributes that describe ``spec`` (format version 2, 3 or 4: `version_of`)."""
-    attrs = dict(format=FORMAT, format_version=version_of(spec.linear_aggregate, spec.linear_state),
-                 kind=spec.kind, aggregation=spec.aggregation,
+    """The root attributes that describe ``spec`` (format version 2, or 3 with the linear path)."""
+    version = LINEAR_PATH_VERSION if spec.linear_aggregate else FORMAT_VERSION
+    attrs = dict(format=FORMAT, format_version=version, kind=spec.kind, aggregation=spec.aggregation,
                  state_dim=spec.state_dim, control_dim=spec.control_dim, message_dim=spec.message_dim,
                  hidden=spec.hidden, activation="tanh", dt=float(spec.dt), substeps=spec.substeps,
                  integrator="rk4", zero_messages=int(spec.zero_messages), self_messages=int(spec.self_messages))
@@ -209,16 +194,7 @@ def spec_attrs(spec):
         attrs["linear_aggregation"] = spec.linear_aggregation
     if spec.linear_target != "all":  # absent: the path adds to every output
         attrs["linear_target"] = spec.linear_target
-    if spec.linear_state:  # absent means off
-        attrs["linear_state"] = 1
     return attrs
-
-
-def version_of(linear_aggregate, linear_state):
-    """The format version a model is written in: the oldest that holds all its paths."""
-    if linear_state:
-        return STATE_PATH_VERSION
-    return LINEAR_PATH_VERSION if linear_aggregate else FORMAT_VERSION
 
 
 def write_model(path, spec, params, norm, attrs):

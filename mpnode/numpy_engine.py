@@ -86,8 +86,6 @@ def make_field(spec, theta, graph):
         if spec.linear_aggregate:  # the path linear in the aggregate, around the MLP
             ncol = p["W_agg"].shape[1]  # dx + dm, or dx for linear_target "state"
             k[:, :ncol] += (heard if linear is None else linear(m)) @ p["W_agg"]
-        if spec.linear_state:  # the path linear in the node's own state
-            k[:, :dx] += x @ p["W_state"]
         if spec.zero_messages:
             k[:, dx:] = 0
         return k

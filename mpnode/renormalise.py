@@ -38,8 +38,6 @@ def _output_blocks(spec):
     out = [("W3", "b3", cols)]
     if spec.kind == "mpnode" and spec.linear_aggregate:
         out.append(("W_agg", None, cols))
-    if spec.kind == "mpnode" and spec.linear_state:
-        out.append(("W_state", None, cols))
     return out
 
 
@@ -58,10 +56,6 @@ def renormalised(model, x_mean, x_std, u_mean=None, u_std=None):
         for rows in rows_list:
             p[bin_] = p[bin_] + c @ p[win][rows]
             p[win][rows] = p[win][rows] * a[:, None]
-    if "W_state" in p:  # the own-state path reads x too: its constant part joins dx/dt's bias
-        dx = model.spec.state_dim
-        p["b3"][:dx] += cx @ p["W_state"]
-        p["W_state"] = p["W_state"] * ax[:, None]
     for w, b, cols_list in _output_blocks(model.spec):
         for cols in cols_list:
             p[w][:, cols] = p[w][:, cols] / ax

@@ -3,7 +3,7 @@ the sweeps and the paper suite, so that each of them trains a model the same way
 
 Options are the command line's, with underscores: the model's (``kind``, ``message_dim``,
 ``hidden``, ``zero_messages``, ``self_messages``, ``aggregation``, ``linear_aggregate``,
-``linear_aggregation``, ``linear_target``, ``linear_state``, ``substeps``, ``dtype``) and every `TrainConfig` field, ``time_limit``
+``linear_aggregation``, ``linear_target``, ``substeps``, ``dtype``) and every `TrainConfig` field, ``time_limit``
 in seconds.  What the options leave unset comes from a recipe (mpnode.recipes: ``auto``, the
 best measured for the data's system, or ``paper``), then from the defaults.
 """
@@ -23,7 +23,7 @@ from .train import TrainConfig, fit
 #: the model options and their defaults (TrainConfig's fields are the training options)
 MODEL_OPTIONS = {"kind": "mpnode", "message_dim": 3, "hidden": 32, "zero_messages": False, "self_messages": False,
                  "aggregation": None, "linear_aggregate": False, "linear_aggregation": None,
-                 "linear_target": "all", "linear_state": False, "substeps": 1,
+                 "linear_target": "all", "substeps": 1,
                  "dtype": "float32"}
 TRAIN_OPTIONS = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
 
@@ -63,8 +63,8 @@ def mean_in_degree(datasets, self_messages, split=None):
 
 
 def new_model(datasets, kind="mpnode", message_dim=3, hidden=32, zero_messages=False, self_messages=False,
-              aggregation=None, linear_aggregate=False, linear_aggregation=None, linear_target="all",
-              linear_state=False, substeps=1, dtype="float32", seed=0, split=None):
+              aggregation=None, linear_aggregate=False, linear_aggregation=None, linear_target="all", substeps=1,
+              dtype="float32", seed=0, split=None):
     """A fresh model for the system of ``datasets`` (their dx, du and dt; a node model their N;
     the scaled aggregation's mean degree from the training split ``split``, see mean_in_degree)."""
     first = datasets[0]
@@ -80,8 +80,7 @@ def new_model(datasets, kind="mpnode", message_dim=3, hidden=32, zero_messages=F
     return Model.create(first.state_dim, first.control_dim, message_dim, hidden, first.dt, substeps, zero_messages,
                         self_messages, seed=seed, dtype=np.dtype(dtype), kind=kind, aggregation=aggregation,
                         mean_degree=mean_degree, n_nodes=n_nodes, linear_aggregate=linear_aggregate,
-                        linear_aggregation=linear_aggregation, linear_target=linear_target,
-                        linear_state=linear_state)
+                        linear_aggregation=linear_aggregation, linear_target=linear_target)
 
 
 def read_all(paths):

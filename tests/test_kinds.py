@@ -1,4 +1,4 @@
-"""Every model kind and aggregation (and the linear paths) through the engine, in
+"""Every model kind and aggregation (and the linear aggregate path) through the engine, in
 float64, on both drivers.
 
 - rollouts against the NumPy reference of engine_helpers (written from the model format);
@@ -28,9 +28,6 @@ KIND_SPECS = {
     "mpnode-mean-linear-scaled-state": spec_(linear_aggregate=True, linear_aggregation="scaled", mean_degree=2.5,
                                              linear_target="state"),
     "mpnode-sum-linear-state": spec_(aggregation="sum", linear_aggregate=True, linear_target="state"),
-    "mpnode-mean-own-state": spec_(linear_state=True),
-    "mpnode-gene-recipe": spec_(linear_aggregate=True, linear_aggregation="scaled", mean_degree=2.5,
-                                linear_target="state", linear_state=True),
     "l2s-sum": spec_(kind="l2s", message_dim=0),
     "l2s-mean-self": spec_(kind="l2s", message_dim=0, aggregation="mean", self_messages=True),
     "l2s-scaled": spec_(kind="l2s", message_dim=0, aggregation="scaled", mean_degree=3.0),

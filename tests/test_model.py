@@ -270,10 +270,10 @@ def test_bad_dataset_is_named(tmp_path, field, mutate):
 # ---------------------------------------------------------------------------
 def write_raw_v2(path, kind, aggregation=None, **extra):
     """A version-2 file of ``kind`` written with plain h5py from the format alone (version 3 when
-    ``extra`` asks for the linear aggregate path, 4 for the own-state path, as the format says)."""
+    ``extra`` asks for the linear aggregate path, as the format says)."""
     rng = np.random.default_rng(1)
     dm = DM if kind == "mpnode" else 0
-    version = 4 if extra.get("linear_state") == 1 else 3 if extra.get("linear_aggregate") == 1 else 2
+    version = 3 if extra.get("linear_aggregate") == 1 else 2
     attrs = dict(format="mpnode.model", format_version=version, kind=kind, state_dim=DX, control_dim=0, message_dim=dm,
                  hidden=H, activation="tanh", dt=0.1, substeps=1, integrator="rk4", zero_messages=0, self_messages=0)
     if aggregation:
@@ -287,8 +287,6 @@ def write_raw_v2(path, kind, aggregation=None, **extra):
                   "b3": (n * DX + dm,)}
         if extra.get("linear_aggregate"):
             shapes["W_agg"] = (dm, DX if extra.get("linear_target") == "state" else DX + dm)
-        if extra.get("linear_state"):
-            shapes["W_state"] = (DX, DX)
     attrs.update(extra)
     with h5py.File(path, "w") as f:
         f.attrs.update(attrs)
@@ -332,10 +330,6 @@ def test_version_2_files_of_every_kind_load_and_round_trip(tmp_path, kind, aggre
     ("mpnode", None, {"linear_target": "state"}, "linear_target"),
     ("mpnode", None, {"format_version": 3}, "format_version"),  # 3 is only for the linear path
     ("mpnode", None, {"linear_aggregate": 1, "format_version": 2}, "format_version"),  # a v2 reader would drop it
-    ("mpnode", None, {"linear_state": 2}, "linear_state"),
-    ("l2s", None, {"linear_state": 1}, "linear_state"),
-    ("mpnode", None, {"linear_state": 1, "format_version": 3}, "format_version"),  # a v3 reader would drop it
-    ("mpnode", None, {"linear_aggregate": 1, "format_version": 4}, "format_version"),  # 4 is for the own-state path
 ])
 def test_version_2_files_that_break_a_rule_are_refused(tmp_path, kind, aggregation, extra, field):
     err = load_error(write_raw_v2(tmp_path / "m.h5", kind, aggregation, **extra))
@@ -472,17 +466,3 @@ def test_undecodable_string_attribute_names_its_field(tmp_path):
         f.attrs["format"] = np.bytes_(b"\xff\xfe")
     with pytest.raises(InputError, match=r"m\.h5: format: "):
         Model.load(path)
-
-
-@pytest.mark.parametrize("extra", [{}, {"linear_aggregate": 1, "linear_target": "state"}])
-def test_the_own_state_path_round_trips_in_version_4(tmp_path, extra):
-    """W_state and the switch come back exactly, with or without the aggregate's path; the file
-    is version 4, which a version-3 reader refuses instead of dropping the path."""
-    m = Model.load(write_raw_v2(tmp_path / "m.h5", "mpnode", linear_state=1, **extra))
-    assert m.spec.linear_state and m.params["W_state"].shape == (DX, DX) and np.any(m.params["W_state"])
-    assert m.spec.linear_aggregate == bool(extra)
-    m.save(tmp_path / "again.h5")
-    back = Model.load(tmp_path / "again.h5")
-    assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
-    with h5py.File(tmp_path / "again.h5", "r") as f:
-        assert f.attrs["format_version"] == 4 and f.attrs["linear_state"] == 1

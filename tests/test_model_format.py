@@ -23,8 +23,7 @@ def rollout_from_file(path, traj):
     with h5py.File(path, "r") as f:
         a = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
         kind = a.get("kind", "mpnode")
-        names = L2S_ARRAYS if kind == "l2s" else (MLP_ARRAYS + (("W_agg",) if a.get("linear_aggregate") else ())
-                                                  + (("W_state",) if a.get("linear_state") else ()))
+        names = L2S_ARRAYS if kind == "l2s" else MLP_ARRAYS + (("W_agg",) if a.get("linear_aggregate") else ())
         theta = np.concatenate([f[f"params/{n}"][()].astype(np.float64).ravel() for n in names])
         x_mean, x_std = f["norm/x_mean"][()], f["norm/x_std"][()]
     spec = SimpleNamespace(kind=kind, state_dim=int(a["state_dim"]), control_dim=int(a["control_dim"]),
@@ -34,8 +33,7 @@ def rollout_from_file(path, traj):
                            mean_degree=a.get("mean_degree"), n_nodes=a.get("n_nodes"),
                            linear_aggregate=bool(a.get("linear_aggregate", 0)),
                            linear_aggregation=a.get("linear_aggregation"),
-                           linear_target=a.get("linear_target", "all"),
-                           linear_state=bool(a.get("linear_state", 0)))
+                           linear_target=a.get("linear_target", "all"))
     B, T1, N, dx = traj.x.shape
     out = np.empty((B, T1, N, dx))
     for b in range(B):
@@ -49,10 +47,7 @@ def rollout_from_file(path, traj):
                                         ("mpnode", ["--aggregate", "scaled", "--linear-aggregate"]),
                                         ("mpnode", ["--aggregate", "mean", "--linear-aggregation", "scaled"]),
                                         ("mpnode", ["--aggregate", "mean", "--linear-aggregation", "scaled",
-                                                    "--linear-target", "state"]),
-                                        ("mpnode", ["--linear-state"]),
-                                        ("mpnode", ["--aggregate", "mean", "--linear-aggregation", "scaled",
-                                                    "--linear-target", "state", "--linear-state"])])
+                                                    "--linear-target", "state"])])
 def test_a_rollout_from_the_file_alone_reproduces_eval_predictions(tmp_path, kind, extra):
     data = tiny_file(tmp_path / "d.h5", B=6)
     model = tmp_path / "m.h5"

@@ -9,8 +9,7 @@ from mpnode.renormalise import renormalised
 DX, DU = 2, 2
 KINDS = [dict(kind="mpnode", message_dim=3), dict(kind="mpnode", message_dim=3, linear_aggregation="scaled",
                                                    mean_degree=2.5),
-         dict(kind="mpnode", message_dim=3, linear_target="state", linear_state=True), dict(kind="l2s"),
-         dict(kind="node", n_nodes=9)]
+         dict(kind="mpnode", message_dim=3, linear_target="state"), dict(kind="l2s"), dict(kind="node", n_nodes=9)]
 
 
 def model_of(kind):

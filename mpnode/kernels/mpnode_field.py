@@ -5,13 +5,11 @@ message m itself (the columns dx: of z), so nothing is computed before the neigh
 sum; m' = weight * (sum over the row).  Parameters, flat in this order (row-major):
 W1 (din, H), b1 (H), W2 (H, H), b2 (H), W3 (H, dout), b3 (dout) with din = dx + du + dm
 and dout = dx + dm, then W_agg (dm, dout), or (dm, dx) when it feeds dx/dt alone, when
-linear_agg has flag 1 (the linear aggregate path), then W_state (dx, dx) when it has flag 8 (the
-path linear in the node's own state: dx/dt += x W_state).  ``dims`` = (kind, dx, du, dm, H,
-self_msg, zero_msg, linear_agg); linear_agg is a set of flags: 1 the aggregate's path is there
-(reading the MLP's aggregate m'); 2 it reads s_i m'_i instead, s_i = weight[M + i] (the weight
-array then has 2M entries; e.g. mean for the MLP, scaled sum for the path: s_i = deg_i / D); 4 it
-adds to dx/dt only (W_agg (dm, dx)), so the messages' own dynamics do not hear the degree; 8 the
-own state's path is there.
+linear_agg is not 0 (the linear aggregate path).  ``dims`` = (kind, dx, du, dm, H, self_msg,
+zero_msg, linear_agg); linear_agg is a set of flags: 1 the path is there (reading the MLP's
+aggregate m'); 2 it reads s_i m'_i instead, s_i = weight[M + i] (the weight array then has 2M
+entries; e.g. mean for the MLP, scaled sum for the path: s_i = deg_i / D); 4 it adds to
+dx/dt only (W_agg (dm, dx)), so the messages' own dynamics do not hear the degree.
 """
 import numpy as np
 from numba import njit
@@ -43,29 +41,6 @@ def unpack_agg(theta, din, H, dout, dm, ncol):
     or dx when the path feeds dx/dt alone)."""
     o = din * H + H + H * H + H + H * dout + dout
     return theta[o:o + dm * ncol].reshape(dm, ncol)
-
-
-@njit(**JIT)
-def unpack_state(theta, dims):
-    """The view W_state (dx, dx) at the end of ``theta`` (after W_agg when there is one)."""
-    dx = dims[1]
-    return theta[theta.shape[0] - dx * dx:].reshape(dx, dx)
-
-
-@njit(**JIT)
-def linear_state_forward(Ws, V, K):
-    """K[:, :dx] += x Ws (x = V[:, :dx]): the own state's path around the MLP, whose tanh units
-    flatten a decay such as the gene's -b x beyond the states they were fitted on."""
-    K[:, :Ws.shape[1]] += np.dot(np.ascontiguousarray(V[:, :Ws.shape[0]]), Ws)
-
-
-@njit(**JIT)
-def linear_state_backward(Ws, V, GK, gWs, GV):
-    """VJP of linear_state_forward: gWs += x^T G, GV[:, :dx] += G Ws^T, G = GK[:, :dx]."""
-    dx = Ws.shape[0]
-    G = np.ascontiguousarray(GK[:, :dx])
-    gWs += np.dot(np.ascontiguousarray(V[:, :dx]).T, G)
-    GV[:, :dx] += np.dot(G, Ws.T)
 
 
 @njit(**JIT)
@@ -141,9 +116,7 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
     else:
         aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, V, c)
     K = mlp_forward(theta, V, H1, H2, dx + dm)
-    if linear_agg & 8:
-        linear_state_forward(unpack_state(theta, dims), V, K)
-    if linear_agg & 1:
+    if linear_agg:
         ncol = dx if linear_agg & 4 else dx + dm
         linear_aggregate_forward(unpack_agg(theta, c + dm, H, dx + dm, dm, ncol), V, c, weight, (linear_agg & 2) != 0,
                                  i0, K)
@@ -165,9 +138,7 @@ def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gi
         GK[:, dx:] = 0
     GV = mlp_backward(theta, V, H1, H2, GK, gtheta)  # GK is left as it was given
     c = dx + du
-    if linear_agg & 8:  # before the x part of the cotangent is read out of GV below
-        linear_state_backward(unpack_state(theta, dims), V, GK, unpack_state(gtheta, dims), GV)
-    if linear_agg & 1:  # before the aggregate's cotangent is read out of GV below
+    if linear_agg:  # before the aggregate's cotangent is read out of GV below
         din, dout = c + dm, dx + dm
         ncol = dx if linear_agg & 4 else dout
         linear_aggregate_backward(unpack_agg(theta, din, H, dout, dm, ncol), V, c, weight, (linear_agg & 2) != 0, i0,
