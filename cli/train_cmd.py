@@ -6,6 +6,7 @@ import tempfile
 import click
 
 from mpnode.errors import InputError, NumericalError
+from mpnode.recipes import AUTO_ALL, FINETUNE_AUTO
 from mpnode.train import TrainConfig
 
 from .eval_cmd import check_plot, plot_option
@@ -40,8 +41,11 @@ def training_options(f):
                      help="Passes over the training trajectories."),
         click.option("--time-limit", type=Duration(),
                      help="Stop cleanly after this long (best model and checkpoint saved): minutes, or 90s, 1.5h."),
-        click.option("--batch-size", type=click.IntRange(min=1), default=d.batch_size, show_default=True,
-                     help="Trajectories per batch (each batch from one file: one block-diagonal graph)."),
+        click.option("--batch-size", type=click.IntRange(min=1), default=d.batch_size,
+                     help="Trajectories per batch (each batch from one file: one block-diagonal graph).  Default: "
+                          f"the recipe's (auto: {AUTO_ALL['batch_size']} to train an MP-NODE model, "
+                          f"{FINETUNE_AUTO['batch_size']} to fine-tune one; otherwise and with --recipe paper: "
+                          f"{d.batch_size})."),
         click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=d.lr, show_default=True,
                      help="Adam learning rate."),
         click.option("--beta1", type=click.FloatRange(0, 1, max_open=True), default=d.beta1, show_default=True),
@@ -93,6 +97,13 @@ def training_options(f):
     for opt in reversed(options):
         f = opt(f)
     return f
+
+
+def recipe_option(paper):
+    """--recipe of train and finetune; ``paper`` says what the paper's recipe sets."""
+    return click.option("--recipe", type=click.Choice(["auto", "paper"]), default="auto", show_default=True,
+                        help="Settings for what you leave unset: auto (the best we measured for the data's system: "
+                             f"see the README's recipe table) or paper ({paper}).")
 
 
 def _parse_curriculum(ctx, param, value):
@@ -235,9 +246,7 @@ def print_validation(result, datasets, sources):
 @click.option("--self-messages", is_flag=True,
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")
 @click.option("--dtype", type=click.Choice(["float32", "float64"]), default="float32", show_default=True)
-@click.option("--recipe", type=click.Choice(["auto", "paper"]), default="auto", show_default=True,
-              help="Settings for what you leave unset: auto (the best we measured for the data's system: see the "
-                   "README's recipe table) or paper (the MP-NODE paper's: mean aggregation, plateau schedule).")
+@recipe_option("the MP-NODE paper's: mean aggregation, plateau schedule, batch 128")
 @click.option("--trajectories", type=click.IntRange(min=2), default=SCENE_TRAJECTORIES, show_default=True,
               help="Only when DATA is a scene: trajectories to generate.")
 @training_options
@@ -330,8 +339,9 @@ def _evaluate_on_fresh(scene, model, output, seed):
               help="Fit the normalisation on the new training split instead of keeping the model's; the weights "
                    "change with it so that the model starts from the same predictions, and the loss weighs each "
                    "state dimension by the new data's spread (as `mpnode eval` does).")
+@recipe_option("the paper's training settings: plateau schedule, batch 128")
 @training_options
-def finetune_cmd(model_file, data, refit_norm, **o):
+def finetune_cmd(model_file, data, refit_norm, recipe, **o):
     """Continue training MODEL on DATA... and write the result to OUTPUT.
 
     Starts from exactly MODEL's weights (its kind, dimensions, dt, message settings and,
@@ -345,6 +355,6 @@ def finetune_cmd(model_file, data, refit_norm, **o):
     datasets = runs.read_all(data)
     resume, options = o["resume"], given_options(o)
     result = run_with_progress(o["epochs"], output, lambda **kw: runs.finetune(
-        model_file, data, output, options, refit_norm=refit_norm, resume=resume, datasets=datasets, **kw),
-        o["plot"])
+        model_file, data, output, options, refit_norm=refit_norm, recipe_name=recipe, resume=resume,
+        datasets=datasets, **kw), o["plot"])
     print_validation(result, datasets, list(data))

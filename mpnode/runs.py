@@ -17,7 +17,7 @@ from .data import read_trajectories
 from .errors import InputError
 from .evaluate import evaluate, subset
 from .model import Model
-from .recipes import recipe
+from .recipes import finetune_recipe, recipe
 from .train import TrainConfig, fit
 
 #: the model options and their defaults (TrainConfig's fields are the training options)
@@ -100,6 +100,12 @@ def with_recipe(options, name, system):
     return {**used, **options}, used
 
 
+def _announce(notify, chosen, what):
+    """Tell the user which settings a recipe chose (none: say nothing)."""
+    if notify and chosen:
+        notify(f"{what}: " + ", ".join(f"{k} {v}" for k, v in chosen.items()) + " (each has its own option)")
+
+
 def train(paths, output, options=None, *, recipe_name="auto", resume=False, progress=None, notify=None,
           datasets=None, names=None):
     """Train a new model on the trajectory files ``paths`` (or continue the run beside ``output``).
@@ -112,9 +118,8 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     """
     datasets = datasets or read_all(paths)
     options, chosen = with_recipe(options, recipe_name, datasets[0].system)
-    if notify and chosen and not resume:
-        notify(f"recipe {recipe_name} for {datasets[0].system}: "
-               + ", ".join(f"{k} {v}" for k, v in chosen.items()) + " (each has its own option)")
+    if not resume:
+        _announce(notify, chosen, f"recipe {recipe_name} for {datasets[0].system}")
     model_options, config = split_options(options)
     model = None
     if not resume:
@@ -125,24 +130,29 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
                notify=notify, model_attrs=attrs)
 
 
-def finetune(model_path, paths, output, options=None, *, refit_norm=False, resume=False, progress=None,
-             notify=None, datasets=None, names=None, parent_name=None):
+def finetune(model_path, paths, output, options=None, *, refit_norm=False, recipe_name="auto", resume=False,
+             progress=None, notify=None, datasets=None, names=None, parent_name=None):
     """Continue training the model in ``model_path`` on ``paths``: exactly its weights, settings
     and (unless ``refit_norm``) normalisation; model options other than substeps are the model's.
+    The training options the user leaves unset come from ``recipe_name``'s fine-tuning settings.
     names, parent_name : what to call the data files and the model in attributes (see `train`)."""
     datasets = datasets or read_all(paths)
-    model_options, config = split_options({"norm": "refit" if refit_norm else "keep", **(options or {})})
-    fixed = {k for k, v in (options or {}).items() if k in MODEL_OPTIONS and k != "substeps"}
+    options = dict(options or {})
+    fixed = {k for k, v in options.items() if k in MODEL_OPTIONS and k != "substeps"}
     if fixed:
         raise InputError("options", sorted(fixed)[0], "cannot change when fine-tuning",
                          "only training options (and substeps); the model keeps its kind and sizes")
-    model = None
+    model = None if resume else Model.load(model_path)
+    chosen = {}
     if not resume:
-        model = Model.load(model_path)
-        if "substeps" in (options or {}):
-            model = model.with_spec(substeps=int(model_options["substeps"]))
+        chosen = {k: v for k, v in finetune_recipe(recipe_name, model.kind).items() if k not in options}
+        _announce(notify, chosen, f"recipe {recipe_name} for fine-tuning")
+    model_options, config = split_options({"norm": "refit" if refit_norm else "keep", **chosen, **options})
+    if model is not None and "substeps" in options:
+        model = model.with_spec(substeps=int(model_options["substeps"]))
     names = names or paths
-    attrs = _attrs(names, datasets, finetuned_from=parent_name or os.path.abspath(model_path))
+    attrs = _attrs(names, datasets, finetuned_from=parent_name or os.path.abspath(model_path),
+                   finetune_recipe=recipe_name)
     return fit(model, datasets, config, output, sources=list(map(str, names)), resume=resume, progress=progress,
                notify=notify, model_attrs=attrs)
 

@@ -260,7 +260,8 @@ def run_task(plan, test_names, parent, *files):
         else:
             model = _local(parent, os.path.join(tmp, "parent.h5"))
             result = runs.finetune(model, paths, output, plan["options"], refit_norm=plan["refit_norm"],
-                                   datasets=datasets, names=plan["data"], parent_name=plan["parent_model"])
+                                   recipe_name=plan["recipe"], datasets=datasets, names=plan["data"],
+                                   parent_name=plan["parent_model"])
         seconds = time.perf_counter() - start
         val = runs.validation_errors(result, datasets, plan["data"])
         test = [(name, evaluate(result.model, _read(p, name), source=name, check_stability=False))

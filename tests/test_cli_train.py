@@ -117,6 +117,13 @@ def gene_file(path, B=6, T=4):
     return path
 
 
+def training_config(model_path):
+    """The TrainConfig a run beside ``model_path`` used (from its checkpoint)."""
+    from mpnode.train import TrainState, state_path
+
+    return TrainState.load(state_path(model_path)).config
+
+
 def test_the_recipe_fills_what_the_user_leaves_unset(tmp_path):
     data = gene_file(tmp_path / "g.h5")
     res = run("train", data, "-o", tmp_path / "auto.h5", "--epochs", 1, "--hidden", 8)
@@ -136,6 +143,32 @@ def test_the_recipe_fills_what_the_user_leaves_unset(tmp_path):
     assert not Model.load(tmp_path / "zero.h5").spec.linear_aggregate
     res = run("train", data, "-o", tmp_path / "sum.h5", "--epochs", 1, "--hidden", 8, "--aggregate", "sum")
     assert res.exit_code == 0 and Model.load(tmp_path / "sum.h5").spec.aggregation == "sum"
+
+
+def test_the_recipes_batch_sizes_fill_train_and_finetune(tmp_path):
+    from mpnode.recipes import finetune_recipe, recipe
+
+    data = tiny_file(tmp_path / "d.h5")
+    train_batch = recipe("auto", "tiny_linear")["batch_size"]
+    finetune_batch = finetune_recipe("auto")["batch_size"]
+    assert train_batch < 128 and finetune_batch < 128  # the paper's 128 is one batch of this file
+    res = run("train", data, "-o", tmp_path / "src.h5", "--epochs", 1, "--hidden", 8)
+    assert res.exit_code == 0 and f"batch_size {train_batch}" in res.output, res.output
+    assert training_config(tmp_path / "src.h5").batch_size == train_batch
+    res = run("train", data, "-o", tmp_path / "l2s.h5", "--epochs", 1, "--hidden", 8, "--model", "l2s")
+    assert res.exit_code == 0 and training_config(tmp_path / "l2s.h5").batch_size == 128  # measured on mpnode only
+    res = run("train", data, "-o", tmp_path / "p.h5", "--epochs", 1, "--hidden", 8, "--recipe", "paper")
+    assert res.exit_code == 0 and training_config(tmp_path / "p.h5").batch_size == 128
+    res = run("finetune", tmp_path / "src.h5", data, "-o", tmp_path / "ft.h5", "--epochs", 1)
+    assert res.exit_code == 0, res.output
+    assert f"recipe auto for fine-tuning: batch_size {finetune_batch}" in res.output
+    assert training_config(tmp_path / "ft.h5").batch_size == finetune_batch
+    assert Model.load(tmp_path / "ft.h5").attrs["finetune_recipe"] == "auto"
+    res = run("finetune", tmp_path / "src.h5", data, "-o", tmp_path / "paper.h5", "--epochs", 1, "--recipe", "paper")
+    assert res.exit_code == 0 and "for fine-tuning:" not in res.output
+    assert training_config(tmp_path / "paper.h5").batch_size == 128
+    res = run("finetune", tmp_path / "src.h5", data, "-o", tmp_path / "own.h5", "--epochs", 1, "--batch-size", 3)
+    assert res.exit_code == 0 and training_config(tmp_path / "own.h5").batch_size == 3
 
 
 @pytest.mark.parametrize("kind", ["l2s", "node"])

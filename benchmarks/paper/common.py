@@ -199,8 +199,10 @@ class RunSpec:
         from mpnode import recipes
         from mpnode.data_gen import load_scene
 
-        if self.recipe == "paper" or self.init_from:
+        if self.recipe == "paper":
             return {}
+        if self.init_from:
+            return recipes.finetune_recipe(self.recipe, self.kind)
         system = load_scene(self.train[0].scene).system
         paper = recipes.recipe("paper", system, self.kind)
         return {k: v for k, v in recipes.recipe(self.recipe, system, self.kind).items() if paper.get(k) != v}
@@ -254,8 +256,8 @@ def train_run(spec, work):
     def segment(epochs, resume):
         opts = {**spec.options(), "epochs": epochs}
         if spec.init_from:
-            return runs.finetune(run_dir(work, spec.init_from) / "model.h5", paths, model_file, opts, resume=resume,
-                                 progress=progress, datasets=datasets)
+            return runs.finetune(run_dir(work, spec.init_from) / "model.h5", paths, model_file, opts,
+                                 recipe_name=spec.recipe, resume=resume, progress=progress, datasets=datasets)
         return runs.train(paths, model_file, opts, recipe_name=spec.recipe, resume=resume, progress=progress,
                           datasets=datasets)
 
