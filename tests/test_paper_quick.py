@@ -28,11 +28,11 @@ def test_results_has_every_section_and_figure(quick_run):
                   "4. Fine-tuning", "5. Message size", "6. Speed against error", "7. Aggregation",
                   "8. Learning-rate schedule", "9. Quadrotor swarm",
                   "10. Messages against a monolithic neural ODE", "11. The paper's integrator",
-                  "12. The paper's Tables 1 and 2"):
+                  "12. The paper's Tables 1 and 2", "13. Batch size at equal wall time"):
         assert f"## {title}" in text
     for fig in ("messages_loss", "fig2_pendulum", "fig3b_no_messages", "kuramoto_trajectories", "finetune_curves",
                 "fig6_gene_grid_8x8", "fig6_gene_grid_4x4_er", "message_size", "speed_vs_error", "schedule_val_loss",
-                "quadrotor_message_size", "fig9_quadrotor_finetune"):
+                "quadrotor_message_size", "fig9_quadrotor_finetune", "batch_val_loss"):
         png = quick_run / "figures" / f"{fig}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert f"figures/{fig}.png" in text

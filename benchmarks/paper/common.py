@@ -37,7 +37,7 @@ HERE = Path(__file__).resolve().parent
 #: the experiments, in the order of RESULTS.md
 EXPERIMENTS = ("exp_messages", "exp_topologies", "exp_more_nodes", "exp_finetune", "exp_message_size", "exp_speed",
                "exp_aggregation", "exp_schedule",
-               "exp_quadrotor", "exp_node", "exp_integrator", "exp_tables")
+               "exp_quadrotor", "exp_node", "exp_integrator", "exp_tables", "exp_batch")
 PAPER_EPOCHS = 4000
 
 
@@ -286,7 +286,8 @@ def train_run(spec, work):
            "status": result.status, "message": result.message, "epochs": result.epoch,
            "best_epoch": result.best_epoch, "best_val_loss": result.best_val_loss,
            "seconds": time.perf_counter() - t0,
-           "history": [{k: r.get(k) for k in ("epoch", "train_loss", "val_loss", "window", "lr")} for r in history],
+           "history": [{k: r.get(k) for k in ("epoch", "train_loss", "val_loss", "window", "lr", "elapsed")}
+                       for r in history],
            "test_curve": curve, "test_curve_paper_units": curve_paper}
     with atomic_path(out / "result.json") as tmp:
         Path(tmp).write_text(json.dumps(res, default=_json_default))
