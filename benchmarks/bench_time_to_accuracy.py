@@ -87,7 +87,8 @@ def mpnode_worker(data, thresholds, time_limit, curriculum, seed=0):
     with tempfile.TemporaryDirectory() as out:
         t0, c0 = time.perf_counter(), time.process_time()
         try:
-            options = {"time_limit": time_limit + 60, "curriculum": curriculum, "seed": seed}
+            options = {"time_limit": time_limit + 60, "curriculum": curriculum, "seed": seed,
+                       "batch_size": 128}  # the paper's batch, as the torch peer's
             runs.train([data], os.path.join(out, "model.h5"), options, progress=progress)
         except Reached:
             pass

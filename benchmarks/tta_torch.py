@@ -1,11 +1,11 @@
-"""Time to accuracy, the torch side: `mpnode train`'s default recipe written in torch + torchdiffeq.
+"""Time to accuracy, the torch side: `mpnode train`'s recipe (batch 128) written in torch + torchdiffeq.
 
 This file is a *peer*, not part of mpnode: it imports numpy, h5py, torch and torchdiffeq
 and nothing of mpnode (it reads the trajectory file with h5py, docs/trajectory-format.md).
 bench_time_to_accuracy.py runs it beside `mpnode.runs.train` on the same file, and the
 README's "Time to accuracy" section says what the comparison is made of.
 
-The recipe is mpnode's default one (mpnode/train.py, batches.py, losses.py, optim.py,
+The recipe is mpnode's (the paper's batch of 128; mpnode/train.py, batches.py, losses.py, optim.py,
 layouts.py), step by step, so that both sides do the same arithmetic from the same start:
 - split: the same random 70/30 split (numpy's generator seeded [seed, 2, 0]);
 - z-score constants fitted on the training split (float64, population std), states

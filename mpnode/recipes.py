@@ -45,12 +45,14 @@ def _check(name):
 def recipe(name, system, kind="mpnode", messages=True):
     """The settings of recipe ``name`` for data of ``system`` and a model of ``kind`` (a dict of
     runs options).  Aggregation and the linear path only concern MP-NODE models with messages;
-    l2s keeps its sum unless told, and l2s and node models the paper's batch size.  val_graphs only acts on files with more graphs than it
-    (otherwise the split is random)."""
+    l2s keeps its sum unless told, and l2s and node models the paper's batch size.  val_graphs
+    only acts on files with more graphs than it (otherwise the split is random)."""
     _check(name)
     settings = dict(PAPER)
+    if name == "auto" and kind == "mpnode":
+        settings.update(AUTO_ALL)
     if name == "auto":
-        settings.update(AUTO_ALL if kind == "mpnode" else {}, **AUTO.get(system, {}))
+        settings.update(AUTO.get(system, {}))
     if kind != "mpnode":
         settings.pop("aggregation")
     if kind != "mpnode" or not messages:

@@ -138,7 +138,7 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
     names, parent_name : what to call the data files and the model in attributes (see `train`)."""
     datasets = datasets or read_all(paths)
     options = dict(options or {})
-    fixed = {k for k, v in options.items() if k in MODEL_OPTIONS and k != "substeps"}
+    fixed = {k for k in options if k in MODEL_OPTIONS and k != "substeps"}
     if fixed:
         raise InputError("options", sorted(fixed)[0], "cannot change when fine-tuning",
                          "only training options (and substeps); the model keeps its kind and sizes")

@@ -164,6 +164,8 @@ def test_the_recipes_batch_sizes_fill_train_and_finetune(tmp_path):
     assert f"recipe auto for fine-tuning: batch_size {finetune_batch}" in res.output
     assert training_config(tmp_path / "ft.h5").batch_size == finetune_batch
     assert Model.load(tmp_path / "ft.h5").attrs["finetune_recipe"] == "auto"
+    res = run("finetune", tmp_path / "src.h5", data, "-o", tmp_path / "ft.h5", "--epochs", 2, "--resume")
+    assert res.exit_code == 0 and training_config(tmp_path / "ft.h5").batch_size == finetune_batch  # the run's own
     res = run("finetune", tmp_path / "src.h5", data, "-o", tmp_path / "paper.h5", "--epochs", 1, "--recipe", "paper")
     assert res.exit_code == 0 and "for fine-tuning:" not in res.output
     assert training_config(tmp_path / "paper.h5").batch_size == 128

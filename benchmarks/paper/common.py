@@ -50,9 +50,10 @@ SHORT_SHARE = 0.25
 
 @dataclass(frozen=True)
 class Mode:
-    """The suite's size.  full: RESULTS.md (about 5.5 hours on 2 cores from nothing); short: every
+    """The suite's size.  full: RESULTS.md (about 6 hours on 2 cores from nothing); short: every
     table and figure on the full run's data with a quarter of its epochs and wall-time budgets
-    (77 minutes from nothing on 2 cores: under-trained, a check of the directions); quick: a CI-sized smoke run."""
+    (about 85 minutes from nothing on 2 cores: under-trained, a check of the directions); quick: a CI-sized
+    smoke run."""
 
     name: str = "full"
 
@@ -201,11 +202,13 @@ class RunSpec:
 
         if self.recipe == "paper":
             return {}
+        own = dict(self.extra)
         if self.init_from:
-            return recipes.finetune_recipe(self.recipe, self.kind)
+            return {k: v for k, v in recipes.finetune_recipe(self.recipe, self.kind).items() if k not in own}
         system = load_scene(self.train[0].scene).system
         paper = recipes.recipe("paper", system, self.kind)
-        return {k: v for k, v in recipes.recipe(self.recipe, system, self.kind).items() if paper.get(k) != v}
+        return {k: v for k, v in recipes.recipe(self.recipe, system, self.kind).items()
+                if paper.get(k) != v and k not in own}
 
 
 def run_dir(work, name):
@@ -549,7 +552,7 @@ def parse_args(argv, description):
     tier.add_argument("--quick", action="store_true", help="CI-sized smoke run (tiny data, a few epochs)")
     tier.add_argument("--short", action="store_true",
                       help=f"every table and figure with {SHORT_SHARE:.0%} of the full run's epochs and wall-time "
-                           "budgets, on the same data (77 minutes on 2 cores from nothing)")
+                           "budgets, on the same data (about 85 minutes on 2 cores from nothing)")
     p.add_argument("--out", type=Path, default=None,
                    help="where RESULTS.md, figures/ and work/ go (default: benchmarks/paper for the full "
                         "run, benchmarks/paper/short or benchmarks/paper/quick for the others)")

@@ -85,7 +85,7 @@ def gene64_runs(mode):
                   test=DataSpec("gene64_ba", mode.pick(100, 4), 1), test_points=mode.pick(10, 2))
     return [
         ("gene64_ft_default", "MP-NODE (defaults), fine-tuned from gene16",
-         RunSpec("gene64_ft_default", init_from="gene16_default", **common)),
+         RunSpec("gene64_ft_default", init_from="gene16_default", recipe="auto", **common)),
         ("gene64_scratch_default", "MP-NODE (defaults), from scratch",
          RunSpec("gene64_scratch_default", recipe="auto", **common)),
         ("gene64_ft_l2s", "L2S, fine-tuned from gene16", RunSpec("gene64_ft_l2s", init_from="gene16_l2s", kind="l2s",

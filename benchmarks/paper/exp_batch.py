@@ -11,19 +11,15 @@ quad3 -> quad6).  The best-validation model of each is scored on fresh test traj
 
     python benchmarks/paper/exp_batch.py [--quick]
 """
+import exp_schedule
 from common import DataSpec, RunSpec, evaluate_nmse, main, pyplot, run_line, table
 
 NAME = "batch"
 TITLE = "13. Batch size at equal wall time (Adam steps per epoch)"
 MINUTES = 5
 FINETUNE_MINUTES = 3
-SYSTEMS = {  # key: (scene, training trajectories full/quick)
-    "pendulum": ("coupled_pendulum", (500, 12)),
-    "lorenz3": ("lorenz3", (1000, 12)),
-    "gene16": ("gene16_ba_multi", (500, 10)),
-    "kuramoto10": ("kuramoto10_ba", (500, 12)),
-    "quad3": ("quad3", (500, 6)),
-}
+#: key: (scene, training trajectories full/quick): experiment 8's systems (and data) and quad3
+SYSTEMS = {**exp_schedule.SYSTEMS, "quad3": ("quad3", (500, 6))}
 TRAIN_BATCHES = (128, 32)
 #: target: (source system, scene, training trajectories full/quick)
 TARGETS = {
