@@ -60,6 +60,15 @@ def recipe(name, system, kind="mpnode", messages=True):
     return settings
 
 
+def tables(name):
+    """Everything recipe ``name`` can set (for cache keys: a run keyed by it trains again when
+    the recipe changes)."""
+    _check(name)
+    if name == "paper":
+        return {"paper": PAPER}
+    return {"paper": PAPER, "all": AUTO_ALL, "systems": AUTO, "finetune": FINETUNE_AUTO}
+
+
 def finetune_recipe(name, kind="mpnode"):
     """The training settings of recipe ``name`` for fine-tuning a model of ``kind`` (a dict of
     runs options; ``paper``, or a kind we did not measure: none, so the paper's defaults)."""

@@ -30,6 +30,7 @@ import time
 from concurrent.futures import FIRST_COMPLETED, wait
 from concurrent.futures.process import BrokenProcessPool
 
+from . import recipes
 from .atomic import atomic_path
 from .errors import InputError
 from .runs import MODEL_OPTIONS, parse_duration, split_options
@@ -89,7 +90,8 @@ def read_sweep(path):
     digests = {f: file_digest(f) for p in plans for f in p.data} | {f: file_digest(f) for f in test}
     keys = {}
     for p in plans:
-        p.key = _digest({"options": p.options, "recipe": p.recipe, "refit_norm": p.refit_norm,
+        p.key = _digest({"options": p.options, "recipe": [p.recipe, recipes.tables(p.recipe)],
+                         "refit_norm": p.refit_norm,
                          "data": [digests[f] for f in p.data], "test": [digests[f] for f in test],
                          "parent": keys.get(p.parent)})
         keys[p.name] = p.key

@@ -98,6 +98,16 @@ def test_the_issue_minimal_sweep_file_is_six_runs(data):
     assert len({p.key for p in sweep.runs}) == 6
 
 
+def test_a_runs_key_changes_with_what_its_recipe_sets(data, monkeypatch):
+    from mpnode import recipes
+
+    text = 'data = ["train.h5"]\n[[run]]\nname = "auto"\n[[run]]\nname = "paper"\nrecipe = "paper"\n'
+    before = {p.name: p.key for p in sweep_file(data, "recipes.toml", text).runs}
+    monkeypatch.setattr(recipes, "AUTO_ALL", {"batch_size": 16})  # a later mpnode's recipe
+    after = {p.name: p.key for p in sweep_file(data, "recipes.toml", text).runs}
+    assert after["auto"] != before["auto"] and after["paper"] == before["paper"]
+
+
 @pytest.mark.parametrize("text, field", [
     ('data = ["train.h5"]\n[grid]\nmesage_dim = [1]\n', "mesage_dim"),
     ('data = ["missing.h5"]\n', "data"),
