@@ -43,9 +43,9 @@ def training_options(f):
                      help="Stop cleanly after this long (best model and checkpoint saved): minutes, or 90s, 1.5h."),
         click.option("--batch-size", type=click.IntRange(min=1), default=d.batch_size,
                      help="Trajectories per batch (each batch from one file: one block-diagonal graph).  Default: "
-                          f"the recipe's (auto: {AUTO_ALL['batch_size']} to train an MP-NODE model, "
-                          f"{FINETUNE_AUTO['batch_size']} to fine-tune one; otherwise and with --recipe paper: "
-                          f"{d.batch_size})."),
+                          f"the recipe's (auto: {AUTO_ALL['batch_size']} to train an MP-NODE or L2S model, "
+                          f"{FINETUNE_AUTO['batch_size']} to fine-tune an MP-NODE model; otherwise and with "
+                          f"--recipe paper: {d.batch_size})."),
         click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=d.lr, show_default=True,
                      help="Adam learning rate."),
         click.option("--beta1", type=click.FloatRange(0, 1, max_open=True), default=d.beta1, show_default=True),

@@ -156,7 +156,9 @@ def test_the_recipes_batch_sizes_fill_train_and_finetune(tmp_path):
     assert res.exit_code == 0 and f"batch_size {train_batch}" in res.output, res.output
     assert training_config(tmp_path / "src.h5").batch_size == train_batch
     res = run("train", data, "-o", tmp_path / "l2s.h5", "--epochs", 1, "--hidden", 8, "--model", "l2s")
-    assert res.exit_code == 0 and training_config(tmp_path / "l2s.h5").batch_size == 128  # measured on mpnode only
+    assert res.exit_code == 0 and training_config(tmp_path / "l2s.h5").batch_size == train_batch
+    res = run("train", data, "-o", tmp_path / "node.h5", "--epochs", 1, "--hidden", 8, "--model", "node")
+    assert res.exit_code == 0 and training_config(tmp_path / "node.h5").batch_size == 128  # a tie there: the paper's
     res = run("train", data, "-o", tmp_path / "p.h5", "--epochs", 1, "--hidden", 8, "--recipe", "paper")
     assert res.exit_code == 0 and training_config(tmp_path / "p.h5").batch_size == 128
     res = run("finetune", tmp_path / "src.h5", data, "-o", tmp_path / "ft.h5", "--epochs", 1)

@@ -34,7 +34,7 @@ VARIANTS = (  # name, what, RunSpec settings
      {"recipe": "paper", "aggregation": "scaled", "extra": (("val_graphs", 1),)}),
     ("gene16_default", "MP-NODE, defaults (recipe auto: mean + linear scaled path into dx/dt, --val-graphs 1)",
      {"recipe": "auto"}),
-    ("gene16_l2s", "L2S (--model l2s, sum)", {"kind": "l2s"}),
+    ("gene16_l2s", "L2S (--model l2s, sum; recipe auto)", {"kind": "l2s", "recipe": "auto"}),
 )
 
 
@@ -90,7 +90,8 @@ def gene64_runs(mode):
          RunSpec("gene64_scratch_default", recipe="auto", **common)),
         ("gene64_ft_l2s", "L2S, fine-tuned from gene16", RunSpec("gene64_ft_l2s", init_from="gene16_l2s", kind="l2s",
                                                                  **common)),
-        ("gene64_scratch_l2s", "L2S, from scratch", RunSpec("gene64_scratch_l2s", kind="l2s", **common)),
+        ("gene64_scratch_l2s", "L2S, from scratch", RunSpec("gene64_scratch_l2s", kind="l2s", recipe="auto",
+                                                             **common)),
     ]
 
 
