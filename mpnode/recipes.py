@@ -51,10 +51,8 @@ def recipe(name, system, kind="mpnode", messages=True):
     only acts on files with more graphs than it (otherwise the split is random)."""
     _check(name)
     settings = dict(PAPER)
-    if name == "auto" and kind in AUTO_ALL_KINDS:
-        settings.update(AUTO_ALL)
     if name == "auto":
-        settings.update(AUTO.get(system, {}))
+        settings.update(AUTO_ALL if kind in AUTO_ALL_KINDS else {}, **AUTO.get(system, {}))
     if kind != "mpnode":
         settings.pop("aggregation")
     if kind != "mpnode" or not messages:

@@ -95,7 +95,11 @@ def with_recipe(options, name, system):
     """(options completed by recipe ``name`` for ``system``, the recipe's settings used)."""
     options = dict(options or {})
     messages = options.get("message_dim", MODEL_OPTIONS["message_dim"]) != 0 and not options.get("zero_messages")
-    settings = recipe(name, system, options.get("kind", MODEL_OPTIONS["kind"]), messages)
+    return fill_unset(options, recipe(name, system, options.get("kind", MODEL_OPTIONS["kind"]), messages))
+
+
+def fill_unset(options, settings):
+    """(``options`` completed by the ``settings`` they leave unset, the settings used)."""
     used = {k: v for k, v in settings.items() if k not in options}
     return {**used, **options}, used
 
@@ -143,11 +147,10 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
         raise InputError("options", sorted(fixed)[0], "cannot change when fine-tuning",
                          "only training options (and substeps); the model keeps its kind and sizes")
     model = None if resume else Model.load(model_path)
-    chosen = {}
     if not resume:
-        chosen = {k: v for k, v in finetune_recipe(recipe_name, model.kind).items() if k not in options}
+        options, chosen = fill_unset(options, finetune_recipe(recipe_name, model.kind))
         _announce(notify, chosen, f"recipe {recipe_name} for fine-tuning")
-    model_options, config = split_options({"norm": "refit" if refit_norm else "keep", **chosen, **options})
+    model_options, config = split_options({"norm": "refit" if refit_norm else "keep", **options})
     if model is not None and "substeps" in options:
         model = model.with_spec(substeps=int(model_options["substeps"]))
     names = names or paths
