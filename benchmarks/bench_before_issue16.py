@@ -19,14 +19,14 @@ import tempfile
 import time
 from pathlib import Path
 
+import bench_engine as bench
 import networkx as nx
 import numpy as np
 
-import bench_engine as bench
+from mpnode.base.graph import block_diagonal
 from mpnode.engine import forward
-from mpnode.graph import block_diagonal
-from mpnode.layouts import glorot_init
-from mpnode.losses import value_and_grad
+from mpnode.engine.layouts import glorot_init
+from mpnode.training.losses import value_and_grad
 
 
 def import_old(checkout):

@@ -19,9 +19,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from mpnode.data_gen import load_scene
-from mpnode.data_gen.simulate import generate
-from mpnode.executors import chunk_ranges, open_executor
+from data_gen import load_scene
+from data_gen.simulate import generate
+from mpnode.runs.executors import chunk_ranges, open_executor
 
 
 def _noop(job, chunk):

@@ -32,10 +32,10 @@ import time
 import networkx as nx
 import numpy as np
 
+from mpnode.base.graph import Graph, block_diagonal
 from mpnode.engine import FieldSpec, forward
-from mpnode.graph import Graph, block_diagonal
-from mpnode.layouts import glorot_init
-from mpnode.losses import value_and_grad
+from mpnode.engine.layouts import glorot_init
+from mpnode.training.losses import value_and_grad
 
 
 def random_regular(d, n, seed=0):
@@ -216,7 +216,7 @@ def stage_profile(case, kind, spec, theta, x0, graph, ordering, full_ms):
 
 
 def _blas_pinned(fn, *args):
-    from mpnode.engine import single_threaded_blas
+    from mpnode.engine.backend import single_threaded_blas
 
     with single_threaded_blas():
         fn(*args)
@@ -227,8 +227,8 @@ def _mlp_sweeps_kernel():
     in parallel (as the stagewise driver tiles a graph)."""
     from numba import njit, prange
 
-    from mpnode.kernels.layers import JIT
-    from mpnode.kernels.mpnode_field import mlp_forward
+    from mpnode.engine.kernels.layers import JIT
+    from mpnode.engine.kernels.mpnode_field import mlp_forward
 
     @njit(parallel=True, **dict(JIT, cache=False))
     def sweeps(theta, V, n_sweeps):

@@ -20,7 +20,7 @@ import sys
 import tempfile
 import time
 
-from mpnode import kernels
+from mpnode.engine import kernels
 
 SYSTEMS = {"coupled_pendulum": {}, "lorenz3": {"self_messages": True}, "gene16_ba_multi": {},
            "kuramoto10_ba": {"message_dim": 7}}
@@ -48,7 +48,7 @@ class EngineClock:
 def data_file(folder, scene):
     path = os.path.join(folder, f"{scene}.h5")
     if not os.path.exists(path):
-        subprocess.run([sys.executable, "-m", "mpnode.cli.main", "generate", scene, "-o", path,
+        subprocess.run([sys.executable, "-m", "cli.main", "generate", scene, "-o", path,
                         "--trajectories", "1000"], check=True)
     return path
 

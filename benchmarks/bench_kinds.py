@@ -12,12 +12,12 @@ import argparse
 import json
 
 import numpy as np
-
 from bench_engine import timed
-from mpnode.data_gen import load_scene
+
+from data_gen import load_scene
 from mpnode.engine import forward
-from mpnode.losses import value_and_grad
-from mpnode.model import Model, batch_graph, to_time_major
+from mpnode.model.model import Model, batch_graph, to_time_major
+from mpnode.training.losses import value_and_grad
 
 SYSTEMS = {"coupled_pendulum": "coupled_pendulum", "lorenz3": "lorenz3", "gene16": "gene16_ba",
            "kuramoto10": "kuramoto10_ba", "quad3": "quad3"}

@@ -17,11 +17,11 @@ import statistics
 import time
 
 import numpy as np
-
 from bench_engine import CASES, DT, H, T
+
 from mpnode import Model, Simulator, engine
-from mpnode.graph import Graph, block_diagonal
-from mpnode.layouts import glorot_init
+from mpnode.base.graph import Graph, block_diagonal
+from mpnode.engine.layouts import glorot_init
 
 N_STEP, DX, DM = 10, 3, 3
 LONG = 1000

@@ -73,13 +73,13 @@ if ARGS is not None:  # thread counts must be set before torch is imported
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(ARGS.threads)
 
+import importlib  # noqa: E402
+
 import h5py  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import torchdiffeq  # noqa: E402
 from torchdiffeq import odeint  # noqa: E402
-import importlib  # noqa: E402
-
 from torchdiffeq._impl.fixed_grid import RK4  # noqa: E402
 from torchdiffeq._impl.misc import Perturb  # noqa: E402
 from torchdiffeq._impl.rk_common import rk4_step_func  # noqa: E402
@@ -113,14 +113,14 @@ def read(path):
 
 
 def split(n, seed):
-    """mpnode.batches.split_indices for file 0: (train idx, val idx), sorted."""
+    """mpnode.training.batches.split_indices for file 0: (train idx, val idx), sorted."""
     perm = np.random.default_rng([seed, 2, 0]).permutation(n)
     n_val = min(int(round(VAL_SPLIT * n)), n - 1)
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
 
 
 def zscore_constants(x):
-    """mpnode.batches.fit_normalization: per-dimension mean and population std (float64)."""
+    """mpnode.training.batches.fit_normalization: per-dimension mean and population std (float64)."""
     d = x.shape[-1]
     flat = x.reshape(-1, d)
     mean = flat.sum(axis=0, dtype=np.float64) / flat.shape[0]
@@ -148,7 +148,7 @@ def edges(indptr, indices, copies):
 
 
 def window_starts(horizon, window):
-    """mpnode.batches.window_starts: consecutive windows, one last window ending at T."""
+    """mpnode.training.batches.window_starts: consecutive windows, one last window ending at T."""
     if window >= horizon:
         return [0]
     starts = list(range(0, horizon - window + 1, window))
@@ -167,7 +167,7 @@ def windows(x, window):
 
 
 def epoch_batches(n, seed, epoch):
-    """mpnode.batches.epoch_batches for one part: local index arrays, shuffled."""
+    """mpnode.training.batches.epoch_batches for one part: local index arrays, shuffled."""
     rng = np.random.default_rng([seed, 1, epoch])
     perm = rng.permutation(n)
     out = [perm[i:i + BATCH] for i in range(0, n, BATCH)]
@@ -176,7 +176,7 @@ def epoch_batches(n, seed, epoch):
 
 # ---------------------------------------------------------------------------- model
 def glorot(dx, seed, dtype):
-    """mpnode.layouts.glorot_init for an MP-NODE model: the same numbers, in the same order."""
+    """mpnode.engine.layouts.glorot_init for an MP-NODE model: the same numbers, in the same order."""
     rng = np.random.default_rng(seed)
     shapes = {"W1": (dx + DM, H), "b1": (H,), "W2": (H, H), "b2": (H,), "W3": (H, dx + DM), "b3": (dx + DM,)}
     out = {}

@@ -1,1 +1,1 @@
-"""The `mpnode` command line (installed as mpnode.cli): parses flags, calls the library, prints."""
+"""The `mpnode` command line (installed as cli): parses flags, calls the library, prints."""

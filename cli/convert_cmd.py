@@ -3,7 +3,7 @@ import textwrap
 
 import click
 
-from mpnode.npz import KEYS
+from mpnode.data.npz import KEYS
 
 from .main import main
 
@@ -31,9 +31,9 @@ the key and the fix; nothing is written.
               help="Time between saved states, when the archive has neither dt nor t.")
 @click.option("--system", help="A name for the system, when the archive has no key system.")
 def convert(file, output, dt, system):
-    from mpnode.atomic import check_outputs
+    from mpnode.base.atomic import check_outputs
     from mpnode.data import summarize, write_trajectories
-    from mpnode.npz import read_npz
+    from mpnode.data.npz import read_npz
 
     check_outputs({"--output": output}, [file])
     traj = read_npz(file, dt=dt, system=system)

@@ -4,7 +4,7 @@ import os
 
 import click
 
-from mpnode.errors import InputError, NumericalError
+from mpnode.base.errors import InputError, NumericalError
 
 from .main import main
 
@@ -36,7 +36,7 @@ SUBSTEPS_HELP = ("RK4 steps per dt: a number, or 'auto' -- the smallest s in 1, 
 
 def substeps_options(f):
     """--substeps, --substeps-tol and --max-substeps (eval and simulate)."""
-    from mpnode.stepsize import DEFAULT_MAX_SUBSTEPS, DEFAULT_TOL
+    from mpnode.evaluation.stepsize import DEFAULT_MAX_SUBSTEPS, DEFAULT_TOL
 
     options = [
         click.option("--substeps", type=SubstepsType(), help=SUBSTEPS_HELP),
@@ -88,9 +88,9 @@ def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20
                         substeps_tol=None, max_substeps=None):
     """Evaluate, and time the reference simulator beside the model when the file names one:
     returns (EvalResult, report dict)."""
-    from mpnode import stepsize
-    from mpnode.data_gen.reference import speed_against_reference
-    from mpnode.evaluate import evaluate
+    from data_gen.reference import speed_against_reference
+    from mpnode.evaluation import stepsize
+    from mpnode.evaluation.evaluate import evaluate
 
     result = evaluate(model, traj, source=source, allow_dt_mismatch=allow_dt, substeps=substeps,
                       substeps_tol=substeps_tol or stepsize.DEFAULT_TOL,
@@ -171,7 +171,7 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     Predictable horizon: per trajectory the first step whose normalised MSE exceeds
     0.1 and 1.0, reported as the median over trajectories (in steps and time).
     Speed: rollout wall time and node-steps per second; when DATA names a reference
-    system that mpnode.data_gen can rebuild from the file's parameters, the reference
+    system that data_gen can rebuild from the file's parameters, the reference
     simulator is timed on a sample of the same initial states (speed against error).
 
     Substeps: --substeps auto picks the RK4 substeps per dt by step doubling (the
@@ -184,9 +184,9 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     (missing file, dx/du or dt mismatch); 3 predictions non-finite and --predictions
     given (nothing written).
     """
-    from mpnode.atomic import check_outputs
+    from mpnode.base.atomic import check_outputs
     from mpnode.data import read_trajectories, write_trajectories
-    from mpnode.evaluate import predictions_file, substeps_attrs
+    from mpnode.evaluation.evaluate import predictions_file, substeps_attrs
     from mpnode.model import Model
 
     check_plot(plot)
@@ -251,11 +251,11 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     """
     from dataclasses import replace
 
-    from mpnode.atomic import check_outputs
+    from data_gen import initial_states, load_scene
+    from data_gen.systems import get_system
+    from mpnode.base.atomic import check_outputs
     from mpnode.data import write_trajectories
-    from mpnode.data_gen import initial_states, load_scene
-    from mpnode.data_gen.systems import get_system
-    from mpnode.evaluate import predictions_file, simulate, substeps_attrs
+    from mpnode.evaluation.evaluate import predictions_file, simulate, substeps_attrs
     from mpnode.model import Model
 
     check_plot(plot)

@@ -5,7 +5,6 @@ from dataclasses import replace
 
 import click
 
-
 from .main import main, scheduler_option
 
 
@@ -28,7 +27,7 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler)
     """Integrate the reference system of SCENE and write the trajectories to FILE.
 
     SCENE is a built-in name (list them with `mpnode scenes`) or a path to a
-    .toml scene file (schema: mpnode.data_gen.scenes).  Each trajectory is
+    .toml scene file (schema: data_gen.scenes).  Each trajectory is
     integrated with scipy solve_ivp (DOP853, rtol = atol = 1e-9 unless the scene
     says otherwise) and saved at t = k*dt.  A trajectory that fails (solver error,
     non-finite state, a pendulum reaching |cos theta| < 1e-6) is re-drawn from a
@@ -40,9 +39,10 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler)
     With --scheduler the trajectories are integrated on Dask in chunks; the arrays come
     back here and only this process writes FILE: the file is the same, bit for bit.
     """
-    from mpnode.atomic import check_outputs
+    from data_gen import generate as run
+    from data_gen import load_scene
+    from mpnode.base.atomic import check_outputs
     from mpnode.data import write_trajectories
-    from mpnode.data_gen import generate as run, load_scene
 
     check_outputs({"--output": output}, [scene])
     s = load_scene(scene)
@@ -64,7 +64,7 @@ def scenes():
     Any of them can be passed to `mpnode generate`; B, T, dt and the seed can be
     overridden there.  For anything else write a .toml scene file.
     """
-    from mpnode.data_gen import BUILTIN
+    from data_gen import BUILTIN
 
     width = max(map(len, BUILTIN))
     for name, s in BUILTIN.items():

@@ -21,7 +21,8 @@ def inspect(file, as_json):
     A file that breaks a rule is reported as "Error: FILE: FIELD: problem (expected ...)"
     with exit status 2.
     """
-    from mpnode.data import file_format, read_trajectories, summarize
+    from mpnode.base.h5 import file_format
+    from mpnode.data import read_trajectories, summarize
     from mpnode.model import Model
 
     if file_format(file) == "mpnode.model":

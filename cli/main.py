@@ -1,13 +1,13 @@
 """Entry point of the `mpnode` command: a click group whose commands live in sibling modules.
 
-Bad input anywhere below surfaces as `mpnode.errors.InputError`; this group turns it
+Bad input anywhere below surfaces as `mpnode.base.errors.InputError`; this group turns it
 into a one-paragraph message on stderr and exit status 2, never a traceback.
 """
 import sys
 
 import click
 
-from mpnode.errors import InputError, NumericalError
+from mpnode.base.errors import InputError, NumericalError
 
 
 class _Group(click.Group):
@@ -33,7 +33,7 @@ def main():
 
 
 def scheduler_option(f):
-    """--scheduler (default: $MPNODE_SCHEDULER): where independent tasks run (mpnode.executors)."""
+    """--scheduler (default: $MPNODE_SCHEDULER): where independent tasks run (mpnode.runs.executors)."""
     return click.option(
         "--scheduler", envvar="MPNODE_SCHEDULER", show_envvar=True, metavar="none|local|ADDRESS|FILE",
         help="Run the tasks on Dask (pip install 'mpnode[dist]'): local (a cluster of --workers processes on this "
@@ -42,9 +42,11 @@ def scheduler_option(f):
 
 
 # Each command module adds its commands to `main` on import.
-from . import inspect_cmd  # noqa: E402,F401
-from . import generate_cmd  # noqa: E402,F401
-from . import train_cmd  # noqa: E402,F401
-from . import eval_cmd  # noqa: E402,F401
-from . import convert_cmd  # noqa: E402,F401
-from . import sweep_cmd  # noqa: E402,F401
+from . import (
+    convert_cmd,  # noqa: E402,F401
+    eval_cmd,  # noqa: E402,F401
+    generate_cmd,  # noqa: E402,F401
+    inspect_cmd,  # noqa: E402,F401
+    sweep_cmd,  # noqa: E402,F401
+    train_cmd,  # noqa: E402,F401
+)

@@ -29,8 +29,8 @@ def sweep_cmd(sweep_file, output, workers, scheduler):
     """
     import os
 
-    from mpnode.executors import open_executor
-    from mpnode.sweep import FINISHED, load_finished, read_sweep, run_sweep
+    from mpnode.runs.executors import open_executor
+    from mpnode.runs.sweep import FINISHED, load_finished, read_sweep, run_sweep
 
     sweep = read_sweep(sweep_file)
     os.makedirs(output, exist_ok=True)

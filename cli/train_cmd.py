@@ -5,9 +5,9 @@ import tempfile
 
 import click
 
-from mpnode.errors import InputError, NumericalError
-from mpnode.recipes import AUTO_ALL, FINETUNE_AUTO
-from mpnode.train import TrainConfig
+from mpnode.base.errors import InputError, NumericalError
+from mpnode.training import TrainConfig
+from mpnode.training.recipes import AUTO_ALL, FINETUNE_AUTO
 
 from .eval_cmd import check_plot, plot_option
 from .main import main
@@ -141,9 +141,9 @@ def given_options(o, skip=("output", "resume", "trajectories", "recipe", "plot")
 def check_outputs(output, inputs, data_file=None, plot=None):
     """-o, the files beside it and --plot must not be one of the inputs, nor one another
     (nothing is written if one is); a --plot needs matplotlib (checked first)."""
-    from mpnode.atomic import check_outputs as check
-    from mpnode.train import state_path
-    from mpnode.train_log import log_path
+    from mpnode.base.atomic import check_outputs as check
+    from mpnode.training import state_path
+    from mpnode.training.log import log_path
 
     check_plot(plot)
     outputs = {"--output": output, "--output (log)": log_path(output), "--output (checkpoint)": state_path(output)}
@@ -161,8 +161,8 @@ def _fmt(v):
 def run_with_progress(epochs, output, call, plot=None):
     """Run ``call(progress=, notify=)`` (a runs.train/finetune) with a progress bar on stderr;
     print the outcome; draw the training curves to ``plot``; exit 3 on divergence, 130 on Ctrl-C."""
-    from mpnode.train import state_path
-    from mpnode.train_log import log_path
+    from mpnode.training import state_path
+    from mpnode.training.log import log_path
 
     state = {"bar": None}
 
@@ -203,7 +203,7 @@ def plot_training(output, plot):
     """The training curves of the run beside ``output`` (its whole log, resumed parts included)."""
     from mpnode.model import Model
     from mpnode.plot import plot_training as draw
-    from mpnode.train_log import log_path
+    from mpnode.training.log import log_path
 
     loss = Model.load(output).attrs.get("loss") if os.path.exists(output) else None
     draw(log_path(output), plot, loss=loss, title=os.path.basename(output))
@@ -298,7 +298,7 @@ def _scene_of(data):
     """The scene DATA names (one argument, not a file), or None for trajectory files."""
     if len(data) != 1 or os.path.exists(data[0]):
         return None
-    from mpnode.data_gen import BUILTIN
+    from data_gen import BUILTIN
 
     if data[0] in BUILTIN or data[0].endswith(".toml"):
         return data[0]
@@ -309,8 +309,8 @@ def _scene_of(data):
 def _generate(scene, path, trajectories, seed):
     from dataclasses import replace
 
+    from data_gen import generate, load_scene
     from mpnode.data import write_trajectories
-    from mpnode.data_gen import generate, load_scene
 
     s = replace(load_scene(scene), trajectories=trajectories, seed=seed)
     with click.progressbar(length=s.trajectories, label=f"generating {s.name}", file=sys.stderr) as bar:

@@ -2,10 +2,10 @@
 
 This package knows physics and nothing of learning.  Typical use::
 
-    from mpnode.data_gen import load_scene, generate
+    from data_gen import load_scene, generate
     traj = generate(load_scene("lorenz3"))          # an mpnode.data.Trajectories
 """
-from .scenes import BUILTIN, Scene, load_scene, read_scene  # noqa: F401
 from .initial import initial_states, trajectory_rng  # noqa: F401
+from .scenes import BUILTIN, Scene, load_scene, read_scene  # noqa: F401
 from .simulate import generate, integrate, simulate  # noqa: F401
 from .systems import SYSTEMS, make_rhs  # noqa: F401

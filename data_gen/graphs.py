@@ -1,7 +1,7 @@
 """Graphs the reference systems run on, built with networkx from a seed and kept as CSR.
 
 A `GraphSpec` names a builder and its arguments, so a scene (and the file it produces)
-says exactly which call made each graph; `build` returns `mpnode.graph.Graph` objects
+says exactly which call made each graph; `build` returns `mpnode.base.graph.Graph` objects
 (CSR: sparse graphs stay sparse).
 """
 from dataclasses import dataclass, field
@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 import networkx as nx
 import numpy as np
 
-from mpnode.errors import InputError
-from mpnode.graph import Graph
+from mpnode.base.errors import InputError
+from mpnode.base.graph import Graph
 
 #: builder -> (networkx function, names of its arguments after n, in call order)
 RANDOM_BUILDERS = {

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from mpnode.errors import InputError
+from mpnode.base.errors import InputError
 
 
 def uniform(rng, system, n_nodes):

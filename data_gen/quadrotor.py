@@ -30,9 +30,9 @@ except ImportError:  # without numba the RHS runs as plain Python (same results,
     def njit(**_):   # importing the scenes -- which `mpnode eval` does -- still works (the NumPy path)
         return lambda f: f
 
+from mpnode.base.errors import InputError, NumericalError
 from mpnode.data import Trajectories
-from mpnode.errors import InputError, NumericalError
-from mpnode.executors import chunk_ranges, map_chunks, open_executor
+from mpnode.runs.executors import chunk_ranges, map_chunks, open_executor
 
 SYSTEM = "quadrotor_load"
 STATE_DIM = 13

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from mpnode.metrics import nmse
+from mpnode.evaluation.metrics import nmse
 
 from .simulate import integrate
 from .systems import SYSTEMS, file_rhs
@@ -52,7 +52,7 @@ def speed_against_reference(model, traj, result, sample):
     Returns reference_timing's dict plus learned_seconds_per_trajectory (the first
     ``sample`` trajectories as one batch), ..._full_batch and speedup; None as reference_timing.
     """
-    from mpnode.evaluate import learned_seconds_per_trajectory
+    from mpnode.evaluation.evaluate import learned_seconds_per_trajectory
 
     ref = reference_timing(traj, sample)
     if ref is None:

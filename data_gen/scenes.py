@@ -32,10 +32,17 @@ import math
 import os
 from dataclasses import dataclass, field
 
-from mpnode.errors import InputError
-from mpnode.tomlfile import load_toml
+from mpnode.base.errors import InputError
+from mpnode.base.tomlfile import load_toml
 
-from .graphs import BUILDERS, RANDOM_BUILDERS, GraphSpec, check_args, gene_graph, kuramoto_graph
+from .graphs import (
+    BUILDERS,
+    RANDOM_BUILDERS,
+    GraphSpec,
+    check_args,
+    gene_graph,
+    kuramoto_graph,
+)
 from .initial import get_sampler
 from .systems import get_system
 

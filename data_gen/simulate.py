@@ -32,9 +32,9 @@ import secrets
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from mpnode.base.errors import NumericalError
 from mpnode.data import Trajectories
-from mpnode.errors import NumericalError
-from mpnode.executors import chunk_ranges, map_chunks, open_executor
+from mpnode.runs.executors import chunk_ranges, map_chunks, open_executor
 
 from .initial import get_sampler
 from .scenes import check_scene
@@ -55,7 +55,7 @@ class StiffnessDetected(NumericalError):
 def generate(scene, *, workers=2, max_tries=10, progress=None, scheduler=None):
     """The trajectories of ``scene``, with all it takes to re-integrate them (Trajectories).
 
-    scheduler : where the trajectories are integrated (mpnode.executors: None, the local pool of
+    scheduler : where the trajectories are integrated (mpnode.runs.executors: None, the local pool of
     ``workers`` processes; "local", an address or a scheduler file: Dask); the data do not depend on it.
     Root attributes: the system's scalar parameters (spec names), state_names, seed, system_seed,
     integrator, rtol, atol, scene, description, initial, redrawn, and what graphs were built;
@@ -186,7 +186,7 @@ def simulate(system, params, graphs, graph_index, sampler, n_steps, dt, seed, *,
     sampler : sampler(rng, system, n_nodes) -> x0 of shape (N, dx), picklable (initial.py)
     progress : called with the number of trajectories just finished, or None
     fallback : the implicit method of the stiffness switch (module docstring), None to switch it off
-    workers, scheduler : see mpnode.executors.open_executor (workers=1 without a scheduler: in this process)
+    workers, scheduler : see mpnode.runs.executors.open_executor (workers=1 without a scheduler: in this process)
     Returns (x, redraws): x shape (B, n_steps+1, N, dx) float64, redraws shape (B,) int;
     with ``return_fallback`` also used_fallback, shape (B,) bool (True: integrated with ``fallback``).
     Raises NumericalError when a trajectory still fails after ``max_tries`` initial states.

@@ -12,8 +12,8 @@ from typing import Callable
 import numpy as np
 import scipy.sparse
 
-from mpnode.errors import InputError
-from mpnode.graph import Graph
+from mpnode.base.errors import InputError
+from mpnode.base.graph import Graph
 
 from . import quadrotor
 

@@ -1,21 +1,24 @@
 """mpnode: message-passing neural ODEs (MP-NODE) for networked dynamical systems.
 
 Importing this package is cheap: it loads numpy only.  h5py, scipy, click and the
-numba kernels are imported (and compiled, or loaded from cache) on first use.
+numba kernels are imported (and compiled, or loaded from cache) on first use.  The
+packages, one layer each (docs/architecture.md): base, engine, data, model, evaluation,
+training, runs, and plot.
 """
 __version__ = "0.1.0"
 
-from .errors import InputError, NumericalError  # noqa: F401
-from .graph import Graph, block_diagonal  # noqa: F401
+from mpnode.base.errors import InputError, NumericalError  # noqa: F401
+from mpnode.base.graph import Graph, block_diagonal  # noqa: F401
 
+#: public names, loaded on first use from the module that defines them
 _LAZY = {
-    "Model": "model",
-    "Simulator": "simulator",
-    "loss_and_grad": "model",
-    "Trajectories": "data",
-    "read_trajectories": "data",
-    "write_trajectories": "data",
-    "validate_trajectories": "data",
+    "Model": "mpnode.model.model",
+    "Simulator": "mpnode.model.simulator",
+    "loss_and_grad": "mpnode.training.losses",
+    "Trajectories": "mpnode.data.trajectories",
+    "read_trajectories": "mpnode.data.trajectories",
+    "write_trajectories": "mpnode.data.trajectories",
+    "validate_trajectories": "mpnode.data.trajectories",
 }
 
 
@@ -23,5 +26,5 @@ def __getattr__(name):
     if name in _LAZY:
         import importlib
 
-        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+        return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'mpnode' has no attribute {name!r}")

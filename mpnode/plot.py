@@ -3,7 +3,7 @@
 Three figures a person would put in a report, each from what the library already returns:
 `plot_eval` (truth against prediction per state dimension for a few trajectories and nodes,
 and the error over time with the predictable horizon marked: the MP-NODE paper's Fig. 2 in
-spirit) from `mpnode.evaluate.evaluate`'s EvalResult; `plot_simulation` (a few nodes per
+spirit) from `mpnode.evaluation.evaluate.evaluate`'s EvalResult; `plot_simulation` (a few nodes per
 state dimension) from any rollout; `plot_training` (losses, validation normalised MSE and
 learning rate per epoch) from the training log.  They know no particular system: state dimensions are named by
 the file's ``state_names`` attribute when it has one, x[0], x[1], ... otherwise, and time
@@ -19,9 +19,9 @@ import os
 
 import numpy as np
 
-from .atomic import atomic_path
-from .errors import InputError
-from .metrics import normalised_sq_error
+from mpnode.base.atomic import atomic_path
+from mpnode.base.errors import InputError
+from mpnode.evaluation.metrics import normalised_sq_error
 
 INSTALL_HINT = "matplotlib installed: pip install 'mpnode[plot]' (from a checkout: pip install '.[plot]')"
 #: 1200 x 800 pixels: legible at 100 % on a screen and in a report
@@ -259,12 +259,12 @@ def plot_training(log, out=None, *, loss=None, title=None):
     """Training and validation loss per epoch (log scale), the validation normalised MSE when
     the log has it, and the learning rate.
 
-    log : the records of a training log (`mpnode.train_log.read_log`) or its path;
+    log : the records of a training log (`mpnode.training.log.read_log`) or its path;
     loss : the loss' name for the axis label ("huber", "mse").  Marks the best validation
     epoch and, with a horizon curriculum, where each window length starts.  Returns the
     Figure; writes ``out``.
     """
-    from .train_log import read_log
+    from mpnode.training.log import read_log
 
     records = read_log(log) if isinstance(log, (str, os.PathLike)) else list(log)
     if not records:

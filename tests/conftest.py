@@ -3,7 +3,7 @@ import copy
 
 import pytest
 
-from mpnode import engine, kernels
+from mpnode.engine import kernels, rollout
 
 DRIVER_ENTRY_POINTS = ("rollout_blocks", "rollout_stagewise", "vjp_blocks", "vjp_stagewise")
 
@@ -23,14 +23,14 @@ def driver(request, monkeypatch):
     for name in DRIVER_ENTRY_POINTS:
         monkeypatch.setattr(kernels, name, _spy(getattr(kernels, name), name, calls))
     if request.param == "stagewise":
-        real_plan_for = engine.plan_for
+        real_plan_for = rollout.plan_for
 
         def stagewise_plan(*args, **kwargs):
             plan = copy.copy(real_plan_for(*args, **kwargs))  # a copy: the real one is cached
             plan.blocks = None
             return plan
 
-        monkeypatch.setattr(engine, "plan_for", stagewise_plan)
+        monkeypatch.setattr(rollout, "plan_for", stagewise_plan)
     yield request.param
     assert calls, "no driver ran"
     assert all(c.endswith(request.param) for c in calls), f"expected the {request.param} driver, ran {calls}"

@@ -1,15 +1,15 @@
 """Test helpers for the engine: the float64 NumPy reference of every model kind, test graphs
 and problems.
 
-The reference is the library's NumPy path (mpnode.numpy_engine), written from the
+The reference is the library's NumPy path (mpnode.engine.numpy_path), written from the
 semantics of the model format (docs/model-format.md) and sharing nothing with
-mpnode.kernels; test_engine checks its aggregation on its own.
+mpnode.engine.kernels; test_engine checks its aggregation on its own.
 """
 import numpy as np
 
-from mpnode import layouts, numpy_engine
-from mpnode.engine import FieldSpec
-from mpnode.graph import Graph, block_diagonal
+from mpnode.base.graph import Graph, block_diagonal
+from mpnode.engine import FieldSpec, layouts
+from mpnode.engine import numpy_path as numpy_engine
 
 
 # ---------------------------------------------------------------------------
@@ -43,10 +43,10 @@ def permute_graph(graph, perm):
 
 
 # ---------------------------------------------------------------------------
-# The reference: mpnode.numpy_engine (written from the model format, no kernels), in float64
+# The reference: mpnode.engine.numpy_path (written from the model format, no kernels), in float64
 # ---------------------------------------------------------------------------
 def rollout_ref(spec, theta, x0, graph, u, n_steps, with_messages=False):
-    """The float64 NumPy rollout (mpnode.numpy_engine): x (n_steps+1, M, dx), or (x, m)."""
+    """The float64 NumPy rollout (mpnode.engine.numpy_path): x (n_steps+1, M, dx), or (x, m)."""
     return numpy_engine.rollout(spec, np.asarray(theta, dtype=np.float64), np.asarray(x0, dtype=np.float64),
                                 graph, u, n_steps, with_messages)
 

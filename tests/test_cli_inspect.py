@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from cli.main import main
 from mpnode import Graph
-from mpnode.cli.main import main
 from mpnode.data import Trajectories, write_trajectories
 
 

@@ -5,11 +5,11 @@ import os
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from test_train import tiny_file
 
-from mpnode.cli.main import main
+from cli.main import main
 from mpnode.data import read_trajectories
 from mpnode.model import Model
-from test_train import tiny_file
 
 QUICK = ["--batch-size", "32", "--lr", "1e-2"]
 
@@ -91,7 +91,7 @@ def test_simulate_a_scene_with_a_trained_model(tmp_path):
     # initial states are the ones `mpnode generate` draws for the same scene and seed
     from dataclasses import replace
 
-    from mpnode.data_gen import generate, load_scene
+    from data_gen import generate, load_scene
 
     ref = generate(replace(load_scene("coupled_pendulum"), trajectories=2, horizon=1), workers=1)
     np.testing.assert_allclose(s.x[:2, 0], ref.x[:, 0], rtol=1e-6)
@@ -110,8 +110,8 @@ def test_train_a_scene_in_one_command(tmp_path):
 def gene_file(path, B=6, T=4):
     from dataclasses import replace
 
+    from data_gen import generate, load_scene
     from mpnode.data import write_trajectories
-    from mpnode.data_gen import generate, load_scene
 
     write_trajectories(path, generate(replace(load_scene("gene16_ba"), trajectories=B, horizon=T), workers=1))
     return path
@@ -119,7 +119,7 @@ def gene_file(path, B=6, T=4):
 
 def training_config(model_path):
     """The TrainConfig a run beside ``model_path`` used (from its checkpoint)."""
-    from mpnode.train import TrainState, state_path
+    from mpnode.training.state import TrainState, state_path
 
     return TrainState.load(state_path(model_path)).config
 
@@ -146,7 +146,7 @@ def test_the_recipe_fills_what_the_user_leaves_unset(tmp_path):
 
 
 def test_the_recipes_batch_sizes_fill_train_and_finetune(tmp_path):
-    from mpnode.recipes import finetune_recipe, recipe
+    from mpnode.training.recipes import finetune_recipe, recipe
 
     data = tiny_file(tmp_path / "d.h5")
     train_batch = recipe("auto", "tiny_linear")["batch_size"]

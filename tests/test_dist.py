@@ -14,12 +14,12 @@ from dataclasses import replace
 import pytest
 from click.testing import CliRunner
 
-from mpnode.cli.main import main
+from cli.main import main
+from data_gen import BUILTIN, generate
+from mpnode.base.errors import InputError
 from mpnode.data import write_trajectories
-from mpnode.data_gen import BUILTIN, generate
-from mpnode.errors import InputError
-from mpnode.executors import open_executor, parse_scheduler
-from mpnode.sweep import FINISHED, read_sweep, run_sweep, run_task
+from mpnode.runs.executors import open_executor, parse_scheduler
+from mpnode.runs.sweep import FINISHED, read_sweep, run_sweep, run_task
 
 try:
     import distributed  # noqa: F401
@@ -67,9 +67,9 @@ def sweep_file(folder, name, text):
 
 # ---- without Dask --------------------------------------------------------------------------
 def test_importing_mpnode_and_its_commands_does_not_import_dask(tmp_path):
-    code = ("import sys, mpnode, mpnode.executors, mpnode.sweep, mpnode.cli.main, mpnode.data_gen; "
+    code = ("import sys, mpnode, mpnode.runs.executors, mpnode.runs.sweep, cli.main, data_gen; "
             "print(any(m.split('.')[0] in ('dask', 'distributed') for m in sys.modules))")
-    # run outside the checkout: its mpnode/ folder has no cli/ (that installs as mpnode.cli)
+    # run outside the checkout: its mpnode/ folder has no cli/ (that installs as cli)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=tmp_path)
     assert out.stdout.strip() == "False"
 
@@ -99,7 +99,7 @@ def test_the_issue_minimal_sweep_file_is_six_runs(data):
 
 
 def test_a_runs_key_changes_with_what_its_recipe_sets(data, monkeypatch):
-    from mpnode import recipes
+    from mpnode.training import recipes
 
     text = 'data = ["train.h5"]\n[[run]]\nname = "auto"\n[[run]]\nname = "paper"\nrecipe = "paper"\n'
     before = {p.name: p.key for p in sweep_file(data, "recipes.toml", text).runs}

@@ -1,4 +1,4 @@
-"""The engine (mpnode.kernels via mpnode.engine): layers, rollouts and exact gradients.
+"""The engine (mpnode.engine.kernels via mpnode.engine): layers, rollouts and exact gradients.
 
 Everything correctness-related runs in float64 against the pure-NumPy reference in
 engine_helpers.py or against central finite differences.  Both drivers are covered:
@@ -15,14 +15,27 @@ import dataclasses
 import numba
 import numpy as np
 import pytest
-
 from conftest import DRIVER_ENTRY_POINTS, _spy
-from engine_helpers import (loss_ref, make_graph, mixed_graph, params, permute_graph, problem, random_theta, rel,
-                            rollout_ref, spec_)
-from mpnode import engine, kernels, losses, numpy_engine
-from mpnode.engine import FieldSpec
-from mpnode.graph import Graph, block_diagonal
-from mpnode.kernels import mpnode_field
+from engine_helpers import (
+    loss_ref,
+    make_graph,
+    mixed_graph,
+    params,
+    permute_graph,
+    problem,
+    random_theta,
+    rel,
+    rollout_ref,
+    spec_,
+)
+
+from mpnode import engine
+from mpnode.base.graph import Graph, block_diagonal
+from mpnode.engine import FieldSpec, kernels
+from mpnode.engine import numpy_path as numpy_engine
+from mpnode.engine import plan as engine_plan
+from mpnode.engine.kernels import mpnode_field
+from mpnode.training import losses
 
 # ---------------------------------------------------------------------------
 # 1. Layer VJPs against central finite differences
@@ -189,7 +202,7 @@ def test_test_graphs_cover_dense_and_csr_blocks():
     covering one of the two aggregation paths.
     """
     for big in (150, 140):
-        plan = engine.plan_for(mixed_graph(big=big), spec_(), np.float64)
+        plan = engine_plan.plan_for(mixed_graph(big=big), spec_(), np.float64)
         assert plan.blocks is not None
         assert np.any(plan.dense_n > 0) and np.any(plan.dense_n == 0), (plan.blocks, plan.dense_n)
 
@@ -362,7 +375,7 @@ def test_locality_order_is_invisible_to_users():
     graph = shuffled_grid(23, seed=3)
     M, T = graph.n_nodes, 3
     theta, x0, u = problem(spec, graph, T, seed=21)
-    plan = engine.plan_for(graph, spec, np.float64, driver="stagewise", ordering="rcm")
+    plan = engine_plan.plan_for(graph, spec, np.float64, driver="stagewise", ordering="rcm")
     assert plan.order is not None and not np.array_equal(plan.order, np.arange(M))
     x, vjp = engine.forward_with_vjp(spec, theta, x0, graph, u, T, driver="stagewise", ordering="rcm")
     x_, vjp_ = engine.forward_with_vjp(spec, theta, x0, graph, u, T, driver="stagewise", ordering="none")
@@ -381,14 +394,14 @@ def test_locality_order_only_where_it_brings_neighbours_together():
 
     side = 300  # 90,000 nodes >= LOCALITY_MIN_NODES
     grid = shuffled_grid(side, seed=4)
-    order = engine.locality_order(grid)
+    order = engine_plan.locality_order(grid)
     assert order is not None and np.array_equal(np.sort(order), np.arange(side * side))
     position = np.empty_like(order)
     position[order] = np.arange(len(order))
-    assert engine.local_fraction(grid) < 0.1 < 0.99 < engine.local_fraction(grid, position)
-    assert engine.locality_order(shuffled_grid(side, seed=None)) is None
+    assert engine_plan.local_fraction(grid) < 0.1 < 0.99 < engine_plan.local_fraction(grid, position)
+    assert engine_plan.locality_order(shuffled_grid(side, seed=None)) is None
     regular = Graph.from_networkx(nx.random_regular_graph(6, 70000, seed=0))
-    assert engine.locality_order(regular) is None
+    assert engine_plan.locality_order(regular) is None
 
 
 # ---------------------------------------------------------------------------
@@ -400,7 +413,7 @@ def test_batch_equals_graphs_one_by_one():
     # different sizes, a repeated graph (B copies of one graph), and a block of > TILE nodes
     graphs = [g9, make_graph(rng, 5), g9, make_graph(rng, 20)] + [g9] * 5 + [make_graph(rng, 130)]
     batch = block_diagonal(graphs)
-    plan = engine.plan_for(batch, spec_(self_messages=True), np.float64)
+    plan = engine_plan.plan_for(batch, spec_(self_messages=True), np.float64)
     assert len(plan.blocks) > 2  # really several blocks
     spec = spec_(self_messages=True)
     T = 3

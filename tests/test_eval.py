@@ -1,18 +1,18 @@
-"""mpnode.evaluate and `mpnode eval`: error metrics, blow-ups, predictions, mismatches, reference timing."""
+"""mpnode.evaluation.evaluate and `mpnode eval`: error metrics, blow-ups, predictions, mismatches, reference timing."""
 import json
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
-from mpnode import train
-from mpnode.cli.main import main
-from mpnode.data import Trajectories, read_trajectories, write_trajectories
-from mpnode.errors import InputError
-from mpnode.evaluate import evaluate, predictions_file, subset
-from mpnode.metrics import blow_up_mask, nmse_per_step
-from mpnode.model import Model
 from test_train import fresh, tiny_linear
+
+from cli.main import main
+from mpnode import training as train
+from mpnode.base.errors import InputError
+from mpnode.data import Trajectories, read_trajectories, write_trajectories
+from mpnode.evaluation.evaluate import evaluate, predictions_file, subset
+from mpnode.evaluation.metrics import blow_up_mask, nmse_per_step
+from mpnode.model import Model
 
 
 def model_made_data(model, B=6, T=8, seed=0):
@@ -93,7 +93,7 @@ def test_prediction_file_keeps_graphs_and_names_the_model(tmp_path):
     np.testing.assert_array_equal(back.x, r.predictions)
     bad = r.predictions.copy()
     bad[1, 2] = np.nan
-    from mpnode.errors import NumericalError
+    from mpnode.base.errors import NumericalError
 
     with pytest.raises(NumericalError, match="non-finite"):
         predictions_file(bad, traj.graphs, traj.graph_index, traj.dt, traj.system, "m.h5")
@@ -132,7 +132,7 @@ def test_cli_eval_text_json_predictions_and_dx_mismatch(tmp_path):
 def test_cli_eval_times_the_reference_simulator(tmp_path):
     from dataclasses import replace
 
-    from mpnode.data_gen import generate, load_scene
+    from data_gen import generate, load_scene
 
     traj = generate(replace(load_scene("coupled_pendulum"), trajectories=4, horizon=10), workers=1)
     write_trajectories(tmp_path / "p.h5", traj)

@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from test_train import tiny_file, tiny_linear
 
-from mpnode import atomic
-from mpnode.cli.main import main
+from cli.main import main
+from mpnode.base import atomic
 from mpnode.data import read_trajectories, write_trajectories
 from mpnode.model import Model
-from test_train import tiny_file, tiny_linear
 
 
 def mode(path):

@@ -3,7 +3,7 @@
 Property-based (hypothesis) corruption of valid files -- trajectory files, model files and
 scene TOML -- and of the `generate` / `inspect` command lines.  The property is exact: the
 reader either returns something that passes its own validation (only possible for blind
-byte damage or mutations that keep the file valid) or raises `mpnode.errors.InputError`
+byte damage or mutations that keep the file valid) or raises `mpnode.base.errors.InputError`
 naming the file; never KeyError, ValueError, OSError, TypeError, UnicodeDecodeError, ...
 From the CLI: exit status 2, no "Traceback", no output file.
 
@@ -33,12 +33,12 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
-from mpnode.cli.main import main
+from cli.main import main
+from data_gen import generate, read_scene
+from data_gen.systems import SYSTEMS
+from mpnode.base.errors import InputError, NumericalError
+from mpnode.base.graph import Graph
 from mpnode.data import Trajectories, read_trajectories, validate_trajectories, write_trajectories
-from mpnode.data_gen import generate, read_scene
-from mpnode.data_gen.systems import SYSTEMS
-from mpnode.errors import InputError, NumericalError
-from mpnode.graph import Graph
 from mpnode.model import Model
 
 SCALE = float(os.environ.get("MPNODE_FUZZ_SCALE", "1"))

@@ -6,13 +6,13 @@ import pytest
 from click.testing import CliRunner
 from scipy.integrate import solve_ivp
 
-from mpnode.cli.main import main
+from cli.main import main
+from data_gen import BUILTIN, generate, integrate, make_rhs, simulate
+from data_gen.initial import uniform
+from data_gen.systems import SYSTEMS, lorenz_coupling
+from mpnode.base.errors import NumericalError
+from mpnode.base.graph import Graph
 from mpnode.data import read_trajectories, write_trajectories
-from mpnode.data_gen import BUILTIN, generate, integrate, make_rhs, simulate
-from mpnode.data_gen.initial import uniform
-from mpnode.data_gen.systems import SYSTEMS, lorenz_coupling
-from mpnode.errors import NumericalError
-from mpnode.graph import Graph
 
 
 def small(name, B=4, T=10, **kw):

@@ -25,16 +25,22 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from mpnode.cli.main import main
+from cli.main import main
+from data_gen import BUILTIN, generate, make_rhs
+from data_gen.simulate import (
+    FALLBACK_METHOD,
+    STIFF_NFEV_PER_STEP,
+    StiffnessDetected,
+    integrate,
+    integrate_switching,
+    simulate,
+)
+from data_gen.systems import PENDULUM_COS_MIN, SYSTEMS
+from mpnode.base.errors import NumericalError
 from mpnode.data import read_trajectories, write_trajectories
-from mpnode.data_gen import BUILTIN, generate, make_rhs
-from mpnode.data_gen.simulate import (FALLBACK_METHOD, STIFF_NFEV_PER_STEP, StiffnessDetected, integrate,
-                                      integrate_switching, simulate)
-from mpnode.data_gen.systems import PENDULUM_COS_MIN, SYSTEMS
-from mpnode.errors import NumericalError
 
 # the module (the package attribute `simulate` is the function of that name)
-simulate_module = importlib.import_module("mpnode.data_gen.simulate")
+simulate_module = importlib.import_module("data_gen.simulate")
 LYAPUNOV_LORENZ = 0.906  # maximal Lyapunov exponent of sigma=10, rho=28, beta=8/3
 
 

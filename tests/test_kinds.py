@@ -11,10 +11,12 @@ import dataclasses
 
 import numpy as np
 import pytest
-
 from engine_helpers import mixed_graph, problem, rollout_ref, spec_
-from mpnode import engine, layouts
-from mpnode.graph import Graph, block_diagonal
+
+from mpnode import engine
+from mpnode.base.graph import Graph, block_diagonal
+from mpnode.engine import layouts
+from mpnode.engine import plan as engine_plan
 
 KIND_SPECS = {
     "mpnode-mean": spec_(),
@@ -88,7 +90,7 @@ def test_the_linear_path_reads_its_own_aggregate():
     got = engine.forward(spec, theta, x0, graph, u, 3)
     same = dataclasses.replace(spec, linear_aggregation=None, mean_degree=None)
     assert not np.allclose(got, engine.forward(same, theta, x0, graph, u, 3))
-    assert engine.plan_for(graph, spec, np.float64, driver="stagewise", ordering="rcm").order is not None
+    assert engine_plan.plan_for(graph, spec, np.float64, driver="stagewise", ordering="rcm").order is not None
     np.testing.assert_allclose(engine.forward(spec, theta, x0, graph, u, 3, driver="stagewise", ordering="rcm"),
                                got, rtol=1e-12, atol=1e-12)
 

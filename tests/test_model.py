@@ -6,11 +6,12 @@ import sys
 import h5py
 import numpy as np
 import pytest
-
 from engine_helpers import make_graph, rollout_ref
-from mpnode import InputError, NumericalError, engine, losses
-from mpnode.graph import Graph, block_diagonal
-from mpnode.model import Model, loss_and_grad, to_time_major
+
+from mpnode import InputError, NumericalError, engine
+from mpnode.base.graph import Graph, block_diagonal
+from mpnode.model.model import Model, to_time_major
+from mpnode.training import loss_and_grad, losses
 
 DX, DU, DM, H = 2, 2, 3, 8
 

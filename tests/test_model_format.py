@@ -1,5 +1,5 @@
 """A model file is enough to reproduce mpnode's predictions: a rollout written from the model
-format alone (h5py + the NumPy path mpnode.numpy_engine, no mpnode.Model, no kernels)
+format alone (h5py + the NumPy path mpnode.engine.numpy_path, no mpnode.Model, no kernels)
 agrees with `mpnode eval --predictions` for every kind."""
 from types import SimpleNamespace
 
@@ -7,12 +7,12 @@ import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
 from engine_helpers import rollout_ref
-from mpnode.cli.main import main
-from mpnode.data import read_trajectories
-from mpnode.graph import Graph
 from test_train import tiny_file
+
+from cli.main import main
+from mpnode.base.graph import Graph
+from mpnode.data import read_trajectories
 
 MLP_ARRAYS = ("W1", "b1", "W2", "b2", "W3", "b3")
 L2S_ARRAYS = ("W_lift", "b_lift", "W_msg", "b_msg", "psi", "W_upd", "b_upd", "W_out", "b_out")

@@ -10,8 +10,8 @@ import textwrap
 
 import numpy as np
 import pytest
-
 from engine_helpers import make_graph, random_theta
+
 from mpnode import Model
 from mpnode.engine import FieldSpec
 
@@ -81,7 +81,7 @@ import warnings
 import numpy as np
 import mpnode
 from mpnode import Model, Simulator
-from mpnode.graph import Graph
+from mpnode.base.graph import Graph
 assert "numba" not in sys.modules
 model_path, graph_path, out_path = sys.argv[1:4]
 model = Model.load(model_path)
@@ -106,7 +106,7 @@ np.save(out_path, x)
 
 
 def run_python(code, *args):
-    # outside the checkout, so the installed mpnode (with mpnode.cli) is the one imported
+    # outside the checkout, so the installed mpnode (with cli) is the one imported
     res = subprocess.run([sys.executable, "-c", textwrap.dedent(code), *map(str, args)], capture_output=True,
                          text=True, timeout=300, cwd=tempfile.gettempdir())
     assert res.returncode == 0, res.stdout + res.stderr
@@ -129,7 +129,7 @@ def test_without_numba_the_cli_evaluates(tmp_path):
     data = tiny_file(tmp_path / "d.h5", B=3)
     Model.create(2, 0, 3, 8, 0.1, dtype=np.float32).save(tmp_path / "m.h5")
     res = run_python(BLOCK_NUMBA + """
-from mpnode.cli.main import main
+from cli.main import main
 main(["eval", sys.argv[1], sys.argv[2]])
 """, tmp_path / "m.h5", data)
     assert "normalised MSE" in res.stdout, res.stdout

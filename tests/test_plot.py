@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
-from mpnode.cli.main import main
-from mpnode.data import Trajectories, read_trajectories, write_trajectories
-from mpnode.graph import Graph
-from mpnode.model import Model
 from test_train import fresh, tiny_file, tiny_linear
+
+from cli.main import main
+from mpnode.base.graph import Graph
+from mpnode.data import Trajectories, read_trajectories, write_trajectories
+from mpnode.model import Model
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -141,7 +141,7 @@ def texts(fig):
 
 def test_eval_figure_shows_names_time_units_and_the_horizon(tmp_path):
     pytest.importorskip("matplotlib")
-    from mpnode.evaluate import evaluate
+    from mpnode.evaluation.evaluate import evaluate
     from mpnode.plot import plot_eval
 
     traj = tiny_linear(B=6, T=20)
@@ -246,8 +246,8 @@ def test_swarm_figure_beside_its_benchmark(tmp_path):
 def test_every_built_in_system_names_its_dimensions():
     from dataclasses import replace
 
-    from mpnode.data_gen import generate, load_scene
-    from mpnode.data_gen.systems import SYSTEMS
+    from data_gen import generate, load_scene
+    from data_gen.systems import SYSTEMS
 
     for system in SYSTEMS.values():
         assert len(system.state_names) == system.state_dim and all(system.state_names), system.name

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from data_gen import BUILTIN, generate
+from data_gen import quadrotor as Q
+from data_gen.graphs import GraphSpec
+from data_gen.scenes import check_scene
+from mpnode.base.errors import InputError
+from mpnode.base.graph import Graph
 from mpnode.data import read_trajectories, write_trajectories
-from mpnode.data_gen import BUILTIN, generate
-from mpnode.data_gen import quadrotor as Q
-from mpnode.data_gen.graphs import GraphSpec
-from mpnode.data_gen.scenes import check_scene
-from mpnode.errors import InputError
-from mpnode.graph import Graph
 
 TOL = dict(method="LSODA", rtol=1e-9, atol=1e-9)  # the scenes' integrator
 

@@ -1,10 +1,10 @@
 """Changing a model's normalisation constants must not change what it computes."""
 import numpy as np
 import pytest
-
 from engine_helpers import make_graph
+
 from mpnode.model import Model
-from mpnode.renormalise import renormalised
+from mpnode.model.renormalise import renormalised
 
 DX, DU = 2, 2
 KINDS = [dict(kind="mpnode", message_dim=3), dict(kind="mpnode", message_dim=3, linear_aggregation="scaled",

@@ -4,12 +4,12 @@ from dataclasses import replace
 
 import pytest
 
-import mpnode.data_gen
-from mpnode.data_gen import BUILTIN, generate, load_scene, read_scene
-from mpnode.data_gen.scenes import check_scene
-from mpnode.errors import InputError
+import data_gen
+from data_gen import BUILTIN, generate, load_scene, read_scene
+from data_gen.scenes import check_scene
+from mpnode.base.errors import InputError
 
-EXAMPLE = os.path.join(os.path.dirname(mpnode.data_gen.__file__), "scenes", "example_gene_ring.toml")
+EXAMPLE = os.path.join(os.path.dirname(data_gen.__file__), "scenes", "example_gene_ring.toml")
 
 EXPECTED = ["coupled_pendulum", "lorenz3", "lorenz7", "lorenz10", "lorenz10_medium", "lorenz10_high", "lorenz10_10s",
             "gene16_er", "gene16_ba", "gene16_ws", "gene64_er", "gene64_ba", "gene64_ws", "gene16_ba_multi",

@@ -4,11 +4,12 @@ the messages it shows are the integrated ones; its errors say what to fix."""
 import networkx as nx
 import numpy as np
 import pytest
-
 from engine_helpers import make_graph, random_theta, rollout_ref
-from mpnode import InputError, Model, Simulator, numpy_engine
+
+from mpnode import InputError, Model, Simulator
+from mpnode.base.graph import Graph
 from mpnode.engine import FieldSpec
-from mpnode.graph import Graph
+from mpnode.engine import numpy_path as numpy_engine
 
 N, DX, DU, T, B = 9, 2, 2, 6, 3
 

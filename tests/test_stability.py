@@ -5,12 +5,12 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
-
-from mpnode.cli.main import main
-from mpnode.data import Trajectories, read_trajectories, write_trajectories
-from mpnode.evaluate import evaluate, predictable_horizon
-from mpnode.stepsize import choose_substeps, doubling_estimate
 from test_train import fresh, tiny_linear
+
+from cli.main import main
+from mpnode.data import Trajectories, read_trajectories, write_trajectories
+from mpnode.evaluation.evaluate import evaluate, predictable_horizon
+from mpnode.evaluation.stepsize import choose_substeps, doubling_estimate
 
 
 def fast_model(scale):
@@ -187,7 +187,7 @@ def test_eval_reports_the_predictable_horizon(tmp_path):
 # Horizon curriculum
 # ---------------------------------------------------------------------------
 def test_window_starts_cover_the_horizon_with_consecutive_windows():
-    from mpnode.batches import window_starts
+    from mpnode.training.batches import window_starts
 
     assert list(window_starts(10, 5)) == [0, 5]
     assert list(window_starts(10, 3)) == [0, 3, 6, 7]  # the last window ends at T
@@ -196,7 +196,8 @@ def test_window_starts_cover_the_horizon_with_consecutive_windows():
 
 
 def test_window_part_cuts_every_trajectory_into_windows_from_true_states():
-    from mpnode import batches, train
+    from mpnode import training as train
+    from mpnode.training import batches
 
     traj = tiny_linear(B=6, T=10)
     m = fresh()
@@ -216,7 +217,9 @@ CURRICULUM = dict(batch_size=8, lr=1e-2, curriculum=(2, 5), curriculum_epochs=2)
 
 
 def test_curriculum_trains_logs_window_lengths_and_resumes_bit_for_bit(tmp_path):
-    from mpnode import train, train_log
+    from mpnode import training as train
+    from mpnode.training import log as train_log
+    from mpnode.training import state as train_state
 
     traj = tiny_linear(B=16, T=10)
     straight = train.fit(fresh(), [traj], train.TrainConfig(epochs=6, **CURRICULUM), tmp_path / "a.h5")
@@ -231,7 +234,7 @@ def test_curriculum_trains_logs_window_lengths_and_resumes_bit_for_bit(tmp_path)
         epochs=2, **CURRICULUM)).model.theta)
     # ... and a run stopped mid-curriculum (stage 1, epoch 3) resumes into the same run
     train.fit(fresh(), [traj], train.TrainConfig(epochs=3, **CURRICULUM), tmp_path / "b.h5")
-    assert int(train.load_state(train.state_path(tmp_path / "b.h5"))["curriculum_stage"]) == 1
+    assert int(train_state.load_state(train.state_path(tmp_path / "b.h5"))["curriculum_stage"]) == 1
     again = train.fit(None, [traj], train.TrainConfig(epochs=6), tmp_path / "b.h5", resume=True)
     assert np.array_equal(again.model.theta, straight.model.theta)
     strip = lambda rs: [{k: v for k, v in r.items() if k not in ("seconds", "elapsed")} for r in rs]  # noqa: E731
@@ -264,16 +267,19 @@ def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(t
     import sys
     import time
 
-    from mpnode import train, train_log
-    from mpnode.model import Model
     from test_train import tiny_file
+
+    from mpnode import training as train
+    from mpnode.model import Model
+    from mpnode.training import log as train_log
+    from mpnode.training import state as train_state
 
     data = tiny_file(tmp_path / "d.h5", B=64, T=10)
     out = tmp_path / "m.h5"
     args = [data, "-o", str(out), "--batch-size", "4", "--lr", "1e-2", "--hidden", "8"]
     # cwd: from the repository root, `python -c` would import the source mpnode/, which has no cli/
-    # (setup.cfg installs cli/ as mpnode.cli); the installed package is what a user runs.
-    proc = subprocess.Popen([sys.executable, "-c", "from mpnode.cli.main import main; main()", "train", *args,
+    # (setup.cfg installs cli/ as cli); the installed package is what a user runs.
+    proc = subprocess.Popen([sys.executable, "-c", "from cli.main import main; main()", "train", *args,
                              "--epochs", "100000"], stdout=subprocess.DEVNULL,
                             stderr=open(tmp_path / "stderr.txt", "w"), cwd=tmp_path)
     log, state = train_log.log_path(out), train.state_path(out)
@@ -301,7 +307,7 @@ def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(t
 
     records = [json.loads(line, parse_constant=strict) for line in text.splitlines()]
     assert [r["epoch"] for r in records] == list(range(len(records))) and len(records) >= 5
-    done = int(train.load_state(state)["epoch"])
+    done = int(train_state.load_state(state)["epoch"])
     assert 1 <= done <= records[-1]["epoch"]
     res = CliRunner().invoke(main, ["train", *args, "--epochs", str(done + 2), "--resume"])
     assert res.exit_code == 0, res.output
@@ -312,7 +318,7 @@ def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(t
 
 
 def test_read_log_tolerates_only_a_cut_last_line(tmp_path):
-    from mpnode import train_log
+    from mpnode.training import log as train_log
 
     p = tmp_path / "m.h5.log.jsonl"
     p.write_text('{"epoch": 0}\n{"epoch": 1}\n{"epo')
@@ -330,12 +336,13 @@ def test_learned_lorenz_model_stays_bounded_over_a_long_horizon_and_eval_finds_i
     state by h times a weighted mean of four such values: the normalised state can move at most
     t * bound by time t.  A NaN, an overflow or an unstable integrator would break it.
     """
-    from mpnode.data_gen.scenes import load_scene
-    from mpnode.data_gen.simulate import generate
-    from mpnode.evaluate import evaluate
-    from mpnode.model import Model
-    from mpnode.train import TrainConfig, fit
     import dataclasses
+
+    from data_gen.scenes import load_scene
+    from data_gen.simulate import generate
+    from mpnode.evaluation.evaluate import evaluate
+    from mpnode.model import Model
+    from mpnode.training import TrainConfig, fit
 
     scene = load_scene("lorenz3")
     train = generate(dataclasses.replace(scene, trajectories=32), workers=1)

@@ -5,12 +5,21 @@ import numpy as np
 import pytest
 import scipy.sparse
 
-from mpnode.data_gen.graphs import GraphSpec, gene_graph, kuramoto_graph
-from mpnode.data_gen.initial import get_sampler, hotspots, uniform
-from mpnode.data_gen.systems import (SYSTEMS, adjacency, gene_rhs, kuramoto_rhs, lorenz_coupling, lorenz_rhs,
-                                     make_rhs, pendulum_guard, pendulum_rhs)
-from mpnode.errors import InputError
-from mpnode.graph import Graph
+from data_gen.graphs import GraphSpec, gene_graph, kuramoto_graph
+from data_gen.initial import get_sampler, hotspots, uniform
+from data_gen.systems import (
+    SYSTEMS,
+    adjacency,
+    gene_rhs,
+    kuramoto_rhs,
+    lorenz_coupling,
+    lorenz_rhs,
+    make_rhs,
+    pendulum_guard,
+    pendulum_rhs,
+)
+from mpnode.base.errors import InputError
+from mpnode.base.graph import Graph
 
 
 # ---- coupled pendulum ------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""mpnode.train and mpnode.optim: the training loop, checkpoints, clipping, normalisation."""
+"""mpnode.training and mpnode.training.optim: the training loop, checkpoints, clipping, normalisation."""
 import json
 import math
 
@@ -6,11 +6,14 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from mpnode import batches, train, train_log
+from mpnode import training as train
+from mpnode.base.graph import Graph
 from mpnode.data import Trajectories, write_trajectories
-from mpnode.graph import Graph
 from mpnode.model import Model
-from mpnode.optim import Adam, array_slices, clip_gradient
+from mpnode.training import batches
+from mpnode.training import log as train_log
+from mpnode.training import loop as train_loop
+from mpnode.training.optim import Adam, array_slices, clip_gradient
 
 
 def tiny_linear(B=24, T=10, dt=0.1, seed=0, offset=0.0):
@@ -58,7 +61,8 @@ def test_training_reduces_validation_loss_tenfold():
 
 
 def test_validation_loss_is_the_training_loss_without_noise():
-    from mpnode import engine, losses
+    from mpnode import engine
+    from mpnode.training import losses
 
     m = fresh()
     traj = tiny_linear()
@@ -102,7 +106,7 @@ def test_finetune_starts_from_exactly_the_given_weights(tmp_path):
     assert np.array_equal(src.theta, before)
     m0 = src.copy()
     _, va, _ = batches.prepare(m0, [tiny_linear()], train.TrainConfig(norm="keep"))
-    assert r.history[0]["val_loss"] == pytest.approx(train.Validator(va, "huber")(m0.spec, m0.theta)[0], rel=1e-12)
+    assert r.history[0]["val_loss"] == pytest.approx(train_loop.Validator(va, "huber")(m0.spec, m0.theta)[0], rel=1e-12)
 
 
 def test_refit_finetune_starts_from_the_same_predictions_on_the_new_constants(tmp_path):
@@ -161,7 +165,7 @@ def test_resume_continues_the_same_run(tmp_path):
 
 
 def test_the_logged_validation_nmse_is_what_eval_reports_on_the_validation_split(tmp_path):
-    from mpnode.evaluate import evaluate, subset
+    from mpnode.evaluation.evaluate import evaluate, subset
 
     traj = tiny_linear(B=30)
     r = train.fit(fresh(), [traj], train.TrainConfig(epochs=3, **FAST), tmp_path / "m.h5")
@@ -171,7 +175,7 @@ def test_the_logged_validation_nmse_is_what_eval_reports_on_the_validation_split
 
 
 def test_resume_refuses_other_data(tmp_path):
-    from mpnode.errors import InputError
+    from mpnode.base.errors import InputError
 
     train.fit(fresh(), [tiny_linear()], train.TrainConfig(epochs=1, **FAST), tmp_path / "m.h5")
     with pytest.raises(InputError, match="other training data"):
@@ -192,7 +196,7 @@ def test_huge_learning_rate_stops_with_a_message_and_a_finite_model(tmp_path):
 
 
 def test_non_finite_gradient_is_skipped_and_halves_the_learning_rate(monkeypatch):
-    from mpnode import losses
+    from mpnode.training import losses
 
     real = losses.value_and_grad
     calls = {"n": 0}
@@ -291,7 +295,7 @@ def test_files_with_different_graphs_and_node_counts_train_together():
 
 
 def test_incompatible_files_are_refused():
-    from mpnode.errors import InputError
+    from mpnode.base.errors import InputError
 
     a = tiny_linear()
     b = tiny_linear(dt=0.2)
@@ -324,7 +328,7 @@ def test_cosine_schedule_anneals_from_lr_to_min_lr_over_the_epochs_and_resumes_e
 
 
 def test_a_bad_step_scales_the_cosine_schedule_down(tmp_path, monkeypatch):
-    from mpnode import losses
+    from mpnode.training import losses
 
     real = losses.value_and_grad
     calls = {"n": 0}
@@ -373,7 +377,7 @@ def test_the_time_limit_counts_the_whole_run_across_resumes(tmp_path):
 
 
 def test_the_scaled_aggregation_divides_by_the_training_graphs_mean_in_degree():
-    from mpnode import runs
+    from mpnode.runs import run as runs
 
     traj = multi_graph_file()  # graphs with 2, 1, 1, 0 directed edges on 2 nodes, used in turn
     assert runs.mean_in_degree([traj], False) == pytest.approx((2 + 1 + 1 + 0) / 4 / 2)

@@ -12,10 +12,10 @@ import pytest
 from click.testing import CliRunner
 
 import mpnode
-from mpnode.cli.main import main
+from cli.main import main
+from mpnode.base.errors import InputError
+from mpnode.base.graph import Graph
 from mpnode.data import Trajectories, read_trajectories
-from mpnode.errors import InputError
-from mpnode.graph import Graph
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -218,7 +218,7 @@ def test_convert_refuses_bad_files_and_its_own_input(tmp_path):
 
 
 def test_help_and_the_format_document_every_key():
-    from mpnode.npz import KEYS
+    from mpnode.data.npz import KEYS
 
     res = CliRunner().invoke(main, ["convert", "--help"])
     doc = (README.parent / "docs" / "trajectory-format.md").read_text()

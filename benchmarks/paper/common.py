@@ -10,7 +10,7 @@ An experiment module (exp_*.py) declares
 
 `main` trains the runs of the chosen experiments on a pool of processes (one numba thread
 each: two single-threaded trainings use the 2 cores better than one two-threaded one) or, with
-``--scheduler``, on Dask (mpnode.executors; the workers must see OUT/work, e.g. on this machine
+``--scheduler``, on Dask (mpnode.runs.executors; the workers must see OUT/work, e.g. on this machine
 or on a shared filesystem),
 runs the analyses in order, and assembles RESULTS.md from every section present.
 
@@ -118,9 +118,9 @@ def data_path(work, spec):
 
 def make_data(work, spec, workers=1, scheduler=None):
     """Generate ``spec``'s file unless it is there; return its path."""
+    from data_gen.scenes import load_scene
+    from data_gen.simulate import generate
     from mpnode.data import write_trajectories
-    from mpnode.data_gen.scenes import load_scene
-    from mpnode.data_gen.simulate import generate
 
     path = data_path(work, spec)
     if path.exists():
@@ -197,8 +197,8 @@ class RunSpec:
 
     def recipe_changes(self):
         """The settings recipe ``self.recipe`` takes differently from the paper's recipe."""
-        from mpnode import recipes
-        from mpnode.data_gen import load_scene
+        from data_gen import load_scene
+        from mpnode.training import recipes
 
         if self.recipe == "paper":
             return {}
@@ -231,10 +231,10 @@ def train_run(spec, work):
     """Train ``spec`` with the library function behind `mpnode train` / `finetune` and write
     runs/NAME/{model.h5, model.h5.log.jsonl, result.json}; return the result."""
     from mpnode import runs
-    from mpnode.atomic import atomic_path
-    from mpnode.evaluate import evaluate
-    from mpnode.train import state_path
-    from mpnode.train_log import log_path, read_log
+    from mpnode.base.atomic import atomic_path
+    from mpnode.evaluation.evaluate import evaluate
+    from mpnode.training import state_path
+    from mpnode.training.log import log_path, read_log
 
     out = run_dir(work, spec.name)
     out.mkdir(parents=True, exist_ok=True)
@@ -338,7 +338,7 @@ def ensure_runs(specs, work, jobs=2, force=False, scheduler=None):
 
 @contextlib.contextmanager
 def _farm(jobs, scheduler):
-    from mpnode.executors import open_executor
+    from mpnode.runs.executors import open_executor
 
     if jobs == 1 and scheduler in (None, "", "none"):
         yield None
@@ -421,7 +421,7 @@ class Context:
         """Save a matplotlib figure as figures/NAME.png; returns the markdown link."""
         import matplotlib.pyplot as plt
 
-        from mpnode.atomic import atomic_path
+        from mpnode.base.atomic import atomic_path
 
         self.figures.mkdir(parents=True, exist_ok=True)
         with atomic_path(self.figures / f"{name}.png") as tmp:
@@ -444,7 +444,7 @@ def pyplot():
 
 def evaluate_nmse(model, traj):
     """The evaluation of `mpnode eval` (EvalResult): nMSE per step and over steps 1..T."""
-    from mpnode.evaluate import evaluate
+    from mpnode.evaluation.evaluate import evaluate
 
     return evaluate(model, traj, check_stability=False)
 
@@ -462,7 +462,7 @@ def paper_units(traj, pred):
     dimension, over trajectories, steps and nodes), the scale a model trained on such data uses: one
     scale per test set, so a fine-tuned model (which keeps its source's normalisation) and one
     trained from scratch are measured alike."""
-    from mpnode.losses import huber
+    from mpnode.training.losses import huber
 
     x = np.asarray(traj.x, dtype=np.float64)
     mean, std = x.mean(axis=(0, 1, 2)), x.std(axis=(0, 1, 2))
@@ -474,7 +474,7 @@ def paper_units(traj, pred):
 
 def hold_nmse(traj):
     """nMSE of holding the initial state: what a model must beat to be of any use."""
-    from mpnode.metrics import nmse
+    from mpnode.evaluation.metrics import nmse
 
     x = np.asarray(traj.x, dtype=np.float64)
     return nmse(np.broadcast_to(x[:, :1], x.shape)[:, 1:], x[:, 1:], spread=x)
@@ -605,7 +605,7 @@ def main(experiments, argv=None, description="MP-NODE paper suite"):
 
 
 def _write(path, text):
-    from mpnode.atomic import atomic_path
+    from mpnode.base.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text)

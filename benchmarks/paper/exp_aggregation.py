@@ -16,8 +16,6 @@ the reader sees whether the data sampler explains the distance to Table 1.
 """
 import dataclasses
 
-import numpy as np
-
 import exp_topologies
 from common import DataSpec, RunSpec, evaluate_nmse, hold_nmse, main, paper_units, run_line, table, zscore_mse
 

@@ -18,13 +18,12 @@ two test errors: our nMSE, and the paper's units (`common.paper_units`).
 
     python benchmarks/paper/exp_finetune.py [--quick]
 """
-import numpy as np
-
 import exp_aggregation
 import exp_messages
 import exp_more_nodes
 import exp_topologies
 import gene_grid
+import numpy as np
 from common import DataSpec, RunSpec, main, pyplot, run_line, table, test_curve
 
 NAME = "finetune"

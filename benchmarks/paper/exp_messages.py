@@ -9,10 +9,10 @@ outgoing message over time, and the test nMSE of both models.
     python benchmarks/paper/exp_messages.py [--quick]
 """
 import numpy as np
-
 from common import DataSpec, RunSpec, curve, evaluate_nmse, figure_block, flatness, main, pyplot, run_line, table
-from mpnode import numpy_engine
-from mpnode.metrics import nmse
+
+from mpnode.engine import numpy_path as numpy_engine
+from mpnode.evaluation.metrics import nmse
 
 NAME = "messages"
 TITLE = "1. Messages matter (paper Fig. 2, 3, 4)"
@@ -194,8 +194,8 @@ def fig2_pendulum(ctx):
 def uncoupled_reference(test, b):
     """Trajectory ``b``'s initial state simulated with the coupling spring removed (k = 0): each
     pendulum on its own, the behaviour Fig. 3b says a node falls back to without messages."""
-    from mpnode.data_gen.simulate import integrate
-    from mpnode.data_gen.systems import pendulum_rhs
+    from data_gen.simulate import integrate
+    from data_gen.systems import pendulum_rhs
 
     p = {k: float(test.attrs[k]) for k in ("m", "l", "g")}  # the generating parameters
     x0 = np.asarray(test.x[b, 0], dtype=np.float64)

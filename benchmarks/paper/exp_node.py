@@ -7,9 +7,8 @@ then each NODE is asked to run on a graph of another size, which it must refuse.
 
     python benchmarks/paper/exp_node.py [--quick]
 """
-import numpy as np
-
 import exp_schedule
+import numpy as np
 from common import RunSpec, evaluate_nmse, main, run_line, table
 
 NAME = "node"
@@ -32,8 +31,8 @@ def data(mode):
 
 def refusal(model, n_nodes):
     """What a NODE says when asked to roll out a graph of ``n_nodes`` nodes (its message)."""
-    from mpnode.errors import InputError
-    from mpnode.graph import Graph
+    from mpnode.base.errors import InputError
+    from mpnode.base.graph import Graph
 
     x0 = np.zeros((1, n_nodes, model.spec.state_dim))
     try:

@@ -10,8 +10,7 @@ and from scratch, and the scaled MP-NODE fine-tuned; efficiency = min test nMSE 
     python benchmarks/paper/exp_quadrotor.py [--quick]
 """
 import exp_finetune
-from common import (DataSpec, RunSpec, evaluate_nmse, figure_block, hold_nmse, main, pyplot, run_line, table,
-                    test_curve)
+from common import DataSpec, RunSpec, evaluate_nmse, figure_block, hold_nmse, main, pyplot, run_line, table, test_curve
 
 NAME = "quadrotor"
 TITLE = "9. Quadrotor swarm: message sizes, L2S, 3 -> 6 quadrotors (paper Fig. 7, 9, Table 2)"

@@ -15,11 +15,10 @@ thread (numba.set_num_threads(1); scipy is single-threaded).
 """
 import time
 
-import numpy as np
-
 import exp_messages
 import exp_more_nodes
 import exp_topologies
+import numpy as np
 from common import main, pyplot, table
 
 NAME = "speed"
@@ -94,9 +93,9 @@ def broadcasts(rhs, x0):
 
 def measure(model, traj, sample, repeats):
     """Rows (family, setting, dtype, seconds per trajectory, nMSE) for one system."""
-    from mpnode.data_gen.simulate import integrate
-    from mpnode.data_gen.systems import file_rhs, get_system
-    from mpnode.evaluate import blow_up_mask, data_box, nmse_per_step
+    from data_gen.simulate import integrate
+    from data_gen.systems import file_rhs, get_system
+    from mpnode.evaluation.evaluate import blow_up_mask, data_box, nmse_per_step
 
     rhs, guard = file_rhs(traj), get_system(traj.system).guard
     k = min(sample, traj.n_trajectories)

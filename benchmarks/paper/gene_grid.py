@@ -7,9 +7,9 @@ a square is padded with blank cells, so quick runs on other sizes still draw.
 import math
 
 import numpy as np
-
 from common import figure_block, pyplot
-from mpnode.metrics import nmse
+
+from mpnode.evaluation.metrics import nmse
 
 FIG6 = ("Figure 6: Performance of the MP-NODE on the gene dynamics model: finetuning to larger grids, as "
         "well as zero-shot generalization to unseen graph structures.")

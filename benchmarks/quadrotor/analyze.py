@@ -13,7 +13,7 @@ import sys
 import numpy as np
 
 from mpnode.data import read_trajectories
-from mpnode.evaluate import rollout_all
+from mpnode.evaluation.evaluate import rollout_all
 from mpnode.model import Model
 
 BLOCKS = {"r": slice(0, 3), "q": slice(3, 7), "v": slice(7, 10), "w": slice(10, 13)}

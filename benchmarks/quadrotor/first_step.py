@@ -17,7 +17,7 @@ import argparse
 import numpy as np
 
 from mpnode.data import read_trajectories
-from mpnode.metrics import normalised_sq_error
+from mpnode.evaluation.metrics import normalised_sq_error
 from mpnode.model import Model
 
 M_Q, M_L = 1.0, 0.9  # kg, spec quadrotor.md

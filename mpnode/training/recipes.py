@@ -6,7 +6,7 @@ defaults).  ``auto`` (the default) is the best we measured: for every system, an
 kind of system the data hold (their ``system`` attribute; benchmarks/paper, experiments 7 and
 13, and the README's recipe table say why).  Every setting stays overridable by its own option.
 """
-from .errors import InputError
+from mpnode.base.errors import InputError
 
 PAPER = {"aggregation": "mean", "schedule": "plateau", "batch_size": 128}
 

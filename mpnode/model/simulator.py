@@ -10,9 +10,10 @@ import os
 
 import numpy as np
 
-from . import engine
-from .errors import InputError
-from .graph import Graph, as_graph, is_networkx
+from mpnode import engine
+from mpnode.base.errors import InputError
+from mpnode.base.graph import Graph, as_graph, is_networkx
+
 from .model import Model, batch_graph
 
 

@@ -26,7 +26,7 @@ import multiprocessing
 import os
 import signal
 
-from .errors import InputError
+from mpnode.base.errors import InputError
 
 #: the environment variable that sets the command line's default --scheduler
 ENV = "MPNODE_SCHEDULER"

@@ -7,19 +7,23 @@ reproduces mpnode's simulation.  Three kinds share this class and the engine:
 graph-network ODE baseline) and ``node`` (one network for a whole system of fixed size).
 """
 import functools
+import math
 from dataclasses import replace
 
 import numpy as np
 
-from . import engine, layouts, losses, model_file
-from .errors import InputError, NumericalError
-from .graph import Graph, block_diagonal
+from mpnode import engine
+from mpnode.base.errors import InputError, NumericalError
+from mpnode.base.graph import Graph, block_diagonal
+from mpnode.engine import layouts
+
+from . import file as model_file
 
 
 class Model:
     """A trained (or freshly initialised) model of any kind.
 
-    theta : ndarray, shape (P,) -- flat parameters, float32 or float64 (mpnode.layouts)
+    theta : ndarray, shape (P,) -- flat parameters, float32 or float64 (mpnode.engine.layouts)
     spec : engine.FieldSpec -- kind, dimensions, dt, substeps, aggregation, message switches
     x_mean, x_std : ndarray, shape (dx,) -- the model works on (x - x_mean) / x_std
     u_mean, u_std : ndarray, shape (du,) -- the same for controls
@@ -144,7 +148,7 @@ class Model:
         u : ndarray, shape (B, T, N, du), or None when the model has no controls
         steps : T (defaults to u's length)
         backend : "auto" (the compiled kernels; the NumPy path when numba cannot be
-            imported), "numba" or "numpy" (mpnode.numpy_engine: no numba, slower)
+            imported), "numba" or "numpy" (mpnode.engine.numpy_path: no numba, slower)
         returns x : ndarray, shape (B, T+1, N, dx) (or (T+1, N, dx) for a 2-D x0), in the
         model's dtype and the data's units.
         """
@@ -191,24 +195,6 @@ class Model:
                 raise NumericalError(f"model {name} contains non-finite values; refusing to use or save it")
 
 
-def loss_and_grad(model, x, graph, u=None, loss="huber"):
-    """Loss of the model's rollouts from x[:, 0] against x[:, 1..T], and its exact gradient.
-
-    x : ndarray, shape (B, T+1, N, dx), in data units (normalised with the model's constants)
-    graph : Graph shared by all B, or a list of B Graphs; u : (B, T, N, du) or None
-    loss : "huber" (delta 1) or "mse" on normalised states, summed over state dimensions
-    and steps 1..T and averaged over the B*N nodes (mpnode.losses).
-    Returns (loss, gtheta) with gtheta shaped like model.theta.
-    """
-    x = np.asarray(x)
-    b, t1, n, dx = x.shape
-    model.check_nodes(n)
-    xn = to_time_major(model.normalize_x(x))
-    un = None if u is None else to_time_major(model.normalize_u(np.asarray(u)))
-    value, gtheta, _ = losses.value_and_grad(model.spec, model.theta, xn, batch_graph(graph, b), un, loss)
-    return value, gtheta
-
-
 @functools.lru_cache(maxsize=16)
 def _copies(graph, n_batch):
     """B copies of one graph, kept for reuse: the engine's per-graph plan is then built once
@@ -231,3 +217,22 @@ def batch_graph(graph, n_batch):
         raise InputError("graph", "graph", f"{len(graphs)} graphs for {n_batch} trajectories",
                          "one Graph, or one per trajectory")
     return block_diagonal(graphs)
+
+
+def check_data(model, datasets, sources, allow_dt_mismatch=False):
+    """Raise InputError unless every file fits the model (dx, du, N for a node model) and its dt.
+
+    datasets : list of Trajectories; sources : their file names (for the messages).
+    """
+    s = model.spec
+    for traj, src in zip(datasets, sources):
+        if traj.state_dim != s.state_dim:
+            raise InputError(src, "x", f"has {traj.state_dim} state dimensions per node but the model has "
+                             f"{s.state_dim}", f"a file of the system the model was trained on (dx = {s.state_dim})")
+        if traj.control_dim != s.control_dim:
+            raise InputError(src, "u", f"has {traj.control_dim} control dimensions per node but the model has "
+                             f"{s.control_dim}", f"du = {s.control_dim}")
+        model.check_nodes(traj.n_nodes, src, "x")
+        if not allow_dt_mismatch and not math.isclose(traj.dt, s.dt, rel_tol=1e-9, abs_tol=0.0):
+            raise InputError(src, "dt", f"is {traj.dt:g} but the model was trained with dt = {s.dt:g}",
+                             f"data saved every {s.dt:g} (or pass the flag that allows another dt)")

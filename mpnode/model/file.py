@@ -6,10 +6,11 @@ attributes) and the writer takes the same; `mpnode.model.Model` makes a model of
 """
 import numpy as np
 
-from . import engine, layouts
-from .atomic import atomic_path
-from .data import H5_DAMAGE, plain_attr
-from .errors import InputError
+from mpnode import engine
+from mpnode.base.atomic import atomic_path
+from mpnode.base.errors import InputError
+from mpnode.base.h5 import H5_DAMAGE, plain_attr
+from mpnode.engine import layouts
 
 FORMAT = "mpnode.model"
 FORMAT_VERSION = 2

@@ -7,7 +7,7 @@
     message_dim = [1, 3, 7]
     seed = [0, 1]
 
-Each run is one task (`run_task`) on an mpnode.executors Farm (a local process pool or
+Each run is one task (`run_task`) on an mpnode.runs.executors Farm (a local process pool or
 Dask): it receives the data files' bytes (no shared filesystem is assumed), trains with the
 library function behind `mpnode train` / `finetune` (mpnode.runs) in a temporary folder,
 evaluates the best model, and returns the model file, its log and the evaluation.  The
@@ -30,11 +30,12 @@ import time
 from concurrent.futures import FIRST_COMPLETED, wait
 from concurrent.futures.process import BrokenProcessPool
 
-from . import recipes
-from .atomic import atomic_path
-from .errors import InputError
-from .runs import MODEL_OPTIONS, parse_duration, split_options
-from .tomlfile import load_toml
+from mpnode.base.atomic import atomic_path
+from mpnode.base.errors import InputError
+from mpnode.base.tomlfile import load_toml
+from mpnode.training import recipes
+
+from .run import MODEL_OPTIONS, parse_duration, split_options
 
 #: what a sweep file may hold at its top level
 TOP_KEYS = ("data", "test", "recipe", "train", "grid", "run")
@@ -245,9 +246,10 @@ def run_task(plan, test_names, parent, *files):
     files : the plan's data files then the test files, each bytes or a local path.
     Returns {"model": bytes, "log": bytes, "result": dict} (result: see `_result`).
     """
-    from . import runs
-    from .evaluate import evaluate
-    from .train_log import log_path
+    from mpnode.evaluation.evaluate import evaluate
+    from mpnode.training.log import log_path
+
+    from . import run as runs
 
     with tempfile.TemporaryDirectory(prefix="mpnode-sweep-") as tmp:
         local = [_local(f, os.path.join(tmp, f"data{i}.h5")) for i, f in enumerate(files)]
@@ -277,7 +279,7 @@ def run_task(plan, test_names, parent, *files):
 
 def _read(path, name):
     """The trajectories at ``path`` (a worker's copy); errors name the sweep's file ``name``."""
-    from .data import read_trajectories
+    from mpnode.data import read_trajectories
 
     try:
         return read_trajectories(path)

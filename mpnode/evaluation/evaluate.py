@@ -1,12 +1,12 @@
 """Using a model: evaluate it on a trajectory file, or simulate new initial states.
 
 `evaluate` rolls a model out from every initial state of a file and measures the error
-(mpnode.metrics: normalised MSE per step and overall, blow-ups, predictable horizon) and
+(mpnode.evaluation.metrics: normalised MSE per step and overall, blow-ups, predictable horizon) and
 the speed; `simulate` rolls it out where there is no truth, with a blow-up test against
 the training data's range.  Both take ``substeps="auto"`` (the RK4 substeps chosen by
-step doubling, mpnode.stepsize) and report afterwards whether a blow-up was caused by
+step doubling, mpnode.evaluation.stepsize) and report afterwards whether a blow-up was caused by
 too large an RK4 step (``stepsize.stability_check``).  This module knows nothing of any
-particular system; timing the reference simulator is `mpnode.data_gen.reference`'s job.
+particular system; timing the reference simulator is `data_gen.reference`'s job.
 """
 import math
 import time
@@ -14,11 +14,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mpnode.base.errors import NumericalError
+from mpnode.data import Trajectories
+from mpnode.model import check_data
+
 from . import stepsize
-from .batches import check_data
-from .data import Trajectories
-from .errors import NumericalError
-from .metrics import HORIZON_THRESHOLDS, blow_up_mask, data_box, nmse_per_step, predictable_horizon
+from .metrics import (
+    HORIZON_THRESHOLDS,
+    blow_up_mask,
+    data_box,
+    nmse_per_step,
+    predictable_horizon,
+)
 
 
 @dataclass

@@ -10,7 +10,8 @@ import math
 
 import numpy as np
 
-from . import engine
+from mpnode import engine
+from mpnode.model.model import batch_graph, to_time_major
 
 
 def huber(pred, x, n_nodes):
@@ -60,3 +61,21 @@ def value_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes=None, dr
     total, gpred = LOSSES[loss](pred, np.asarray(x, dtype=pred.dtype), n_nodes or x.shape[1])
     gtheta, gx0 = vjp(gpred)
     return total, gtheta, gx0
+
+
+def loss_and_grad(model, x, graph, u=None, loss="huber"):
+    """Loss of the model's rollouts from x[:, 0] against x[:, 1..T], and its exact gradient.
+
+    x : ndarray, shape (B, T+1, N, dx), in data units (normalised with the model's constants)
+    graph : Graph shared by all B, or a list of B Graphs; u : (B, T, N, du) or None
+    loss : "huber" (delta 1) or "mse" on normalised states, summed over state dimensions
+    and steps 1..T and averaged over the B*N nodes (mpnode.training.losses).
+    Returns (loss, gtheta) with gtheta shaped like model.theta.
+    """
+    x = np.asarray(x)
+    b, t1, n, dx = x.shape
+    model.check_nodes(n)
+    xn = to_time_major(model.normalize_x(x))
+    un = None if u is None else to_time_major(model.normalize_u(np.asarray(u)))
+    value, gtheta, _ = value_and_grad(model.spec, model.theta, xn, batch_graph(graph, b), un, loss)
+    return value, gtheta

@@ -5,7 +5,7 @@ falls back to it, see `engine.resolve_backend`, or ``backend="numpy"`` asks for 
 being the reference the compiled kernels are tested against.  So it is written from the
 semantics of the model format (docs/model-format.md) alone, as plainly as possible: the
 field of each kind as array expressions, the neighbour aggregation as sums over the CSR
-rows, classic RK4 written out.  It shares nothing with ``mpnode.kernels``.
+rows, classic RK4 written out.  It shares nothing with ``mpnode.engine.kernels``.
 
 Arithmetic is in theta's dtype (float64 is the reference; float32 agrees with the
 kernels to float32 rounding: np.tanh is not the kernels' tanh).  Rollouts only: there
@@ -15,7 +15,8 @@ evaluation, so small graphs pay NumPy's per-call overhead (benchmarks/bench_simu
 import numpy as np
 
 from . import layouts
-from .engine import aggregation_weights, checked_controls
+from .plan import aggregation_weights
+from .spec import checked_controls
 
 
 def mlp(p, V):

@@ -14,7 +14,14 @@ dx/dt only (W_agg (dm, dx)), so the messages' own dynamics do not hear the degre
 import numpy as np
 from numba import njit
 
-from .layers import JIT, aggregate_tile, dense_backward, dense_forward, dense_tanh_backward, dense_tanh_forward
+from .layers import (
+    JIT,
+    aggregate_tile,
+    dense_backward,
+    dense_forward,
+    dense_tanh_backward,
+    dense_tanh_forward,
+)
 
 
 @njit(**JIT)

@@ -14,9 +14,11 @@ import zlib
 
 import numpy as np
 
-from .data import Trajectories, _one_line
-from .errors import InputError
-from .graph import Graph, as_graph, check_csr
+from mpnode.base.errors import InputError
+from mpnode.base.graph import Graph, as_graph, check_csr
+from mpnode.base.h5 import one_line
+
+from .trajectories import Trajectories
 
 #: key -> what it holds (the documentation of the layout, in one place)
 KEYS = {
@@ -81,7 +83,7 @@ def _load(source):
     except FileNotFoundError:
         raise InputError(source, "file", "does not exist", "an existing .npz file") from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
-        raise InputError(source, "file", f"cannot be read as .npz ({_one_line(e)})",
+        raise InputError(source, "file", f"cannot be read as .npz ({one_line(e)})",
                          "a NumPy archive written by np.savez or np.savez_compressed") from None
     if z is None:
         raise InputError(source, "file", "is not a NumPy archive (it does not start like a zip file)",
@@ -96,12 +98,12 @@ def _load(source):
                 arrays[key] = z[key]
             except ValueError as e:
                 if "allow_pickle" not in str(e):
-                    raise InputError(source, key, f"cannot be read ({_one_line(e)})",
+                    raise InputError(source, key, f"cannot be read ({one_line(e)})",
                                      "an intact .npz archive") from None
                 raise InputError(source, key, "holds Python objects (an object array, stored with pickle)",
                                  "numbers or strings, e.g. np.asarray(value, dtype=float)") from None
             except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
-                raise InputError(source, key, f"cannot be read ({_one_line(e)})", "an intact .npz archive") from None
+                raise InputError(source, key, f"cannot be read ({one_line(e)})", "an intact .npz archive") from None
     return arrays
 
 

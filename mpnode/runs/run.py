@@ -4,7 +4,7 @@ the sweeps and the paper suite, so that each of them trains a model the same way
 Options are the command line's, with underscores: the model's (``kind``, ``message_dim``,
 ``hidden``, ``zero_messages``, ``self_messages``, ``aggregation``, ``linear_aggregate``,
 ``linear_aggregation``, ``linear_target``, ``substeps``, ``dtype``) and every `TrainConfig` field, ``time_limit``
-in seconds.  What the options leave unset comes from a recipe (mpnode.recipes: ``auto``, the
+in seconds.  What the options leave unset comes from a recipe (mpnode.training.recipes: ``auto``, the
 best measured for the data's system, or ``paper``), then from the defaults.
 """
 import dataclasses
@@ -12,13 +12,13 @@ import os
 
 import numpy as np
 
-from .batches import make_split
-from .data import read_trajectories
-from .errors import InputError
-from .evaluate import evaluate, subset
-from .model import Model
-from .recipes import finetune_recipe, recipe
-from .train import TrainConfig, fit
+from mpnode.base.errors import InputError
+from mpnode.data import read_trajectories
+from mpnode.evaluation.evaluate import evaluate, subset
+from mpnode.model import Model
+from mpnode.training import TrainConfig, fit
+from mpnode.training.batches import make_split
+from mpnode.training.recipes import finetune_recipe, recipe
 
 #: the model options and their defaults (TrainConfig's fields are the training options)
 MODEL_OPTIONS = {"kind": "mpnode", "message_dim": 3, "hidden": 32, "zero_messages": False, "self_messages": False,
@@ -49,7 +49,7 @@ def split_options(options, source="options"):
 def mean_in_degree(datasets, self_messages, split=None):
     """The mean in-degree over every node of every training trajectory of ``datasets`` (+1 when
     nodes hear themselves): the ``scaled`` aggregation's divisor.  split: each file's (train
-    idx, val idx) (mpnode.batches.make_split), or None for all trajectories."""
+    idx, val idx) (mpnode.training.batches.make_split), or None for all trajectories."""
     total = count = 0
     for f, traj in enumerate(datasets):
         gi = np.asarray(traj.graph_index)

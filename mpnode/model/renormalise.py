@@ -9,7 +9,7 @@ new data's spread (and `mpnode eval`'s nMSE) does, from the model it starts from
 """
 import numpy as np
 
-from . import layouts
+from mpnode.engine import layouts
 
 
 def _affine(old_mean, old_std, new_mean, new_std):

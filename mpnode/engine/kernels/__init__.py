@@ -29,9 +29,22 @@ def _cache_dir():
 _user_cache_dir = numba.config.CACHE_DIR
 numba.config.CACHE_DIR = _cache_dir()  # read when each function below is decorated
 try:
-    from .layers import (dense_backward, dense_forward, dense_sum, dense_tanh_backward,  # noqa: F401
-                         dense_tanh_forward)
-    from .rk4 import (L2S, MPNODE, STAGE_TILE, TILE, rollout_blocks, rollout_stagewise,  # noqa: F401
-                      vjp_blocks, vjp_stagewise)
+    from .layers import (  # noqa: F401
+        dense_backward,
+        dense_forward,
+        dense_sum,
+        dense_tanh_backward,
+        dense_tanh_forward,
+    )
+    from .rk4 import (  # noqa: F401
+        L2S,
+        MPNODE,
+        STAGE_TILE,
+        TILE,
+        rollout_blocks,
+        rollout_stagewise,
+        vjp_blocks,
+        vjp_stagewise,
+    )
 finally:
     numba.config.CACHE_DIR = _user_cache_dir

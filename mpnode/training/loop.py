@@ -2,8 +2,8 @@
 
 The recipe (docs/design.md says where each part comes from): full-horizon single shooting
 from each trajectory's first state; Huber loss on z-scored states, summed over dimensions
-and steps and averaged over nodes (mpnode.losses); Adam behind a gradient clip norm applied
-to each parameter array; batches of 128 trajectories (mpnode.batches); a random 70/30
+and steps and averaged over nodes (mpnode.training.losses); Adam behind a gradient clip norm applied
+to each parameter array; batches of 128 trajectories (mpnode.training.batches); a random 70/30
 train/validation split with the z-score constants fitted on the training split only;
 Gaussian noise (std 1e-4) added once to the normalised training states; the learning rate
 halved after ``patience`` epochs without a new best validation loss; the best-validation
@@ -16,117 +16,32 @@ new best stop the run ("diverged").  (The tanh network's output is bounded, so a
 large learning rate gives huge but finite losses: the blow-up test is what catches it.)
 
 Horizon curriculum (``TrainConfig.curriculum``): with window lengths w1 < w2 < ..., the
-first ``curriculum_epochs`` epochs train on windows of w1 steps (mpnode.batches), the next
+first ``curriculum_epochs`` epochs train on windows of w1 steps (mpnode.training.batches), the next
 on w2, ..., the rest on the full horizon, so a chaotic system is learned without the
 exploding gradients of long rollouts from random weights.  Validation stays on the full
 horizon.  The stage is a function of the epoch number alone, which keeps resume exact.
 
-Files beside the output model ``OUT``: ``OUT.log.jsonl`` (mpnode.train_log) and
+Files beside the output model ``OUT``: ``OUT.log.jsonl`` (mpnode.training.log) and
 ``OUT.state``, the `TrainState` checkpoint.  This module knows nothing of any particular system.
 """
 import dataclasses
-import json
 import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import engine, layouts, losses
-from .atomic import atomic_path
-from .batches import check_data, check_same_kind, epoch_batches, fingerprint, prepare
-from .errors import InputError
-from .optim import CLIP_MODES, Adam, array_slices, clip_gradient
-from .train_log import TrainLog
+from mpnode import engine
+from mpnode.base.errors import InputError
+from mpnode.engine import layouts
+from mpnode.model import check_data
 
-STATE_VERSION = 1
-SCHEDULES = ("plateau", "cosine")
-#: how training treats the model's normalisation constants (mpnode.batches.prepare)
-NORMS = ("fit", "refit", "keep")
-
-
-@dataclass
-class TrainConfig:
-    """Everything that decides a training run besides the model and the data.
-
-    time_limit is the run's total training time in seconds (None: no limit; a resumed run
-    counts the time before it, as epochs counts the epochs before it); norm is "fit"
-    (z-score constants fitted on the training split), "refit" (the same for a trained model,
-    whose weights are changed to compute what they did) or "keep" (the model's own constants,
-    for finetuning); schedule is "plateau" (cut the learning rate by lr_decay after
-    ``patience`` epochs without a new best) or "cosine" (from lr down to min_lr over the
-    budget: the epochs, or the time limit when that comes first); val_graphs: hold out
-    that many whole graphs of every file with more graphs for validation (mpnode.batches).
-    The defaults are the command line's (`mpnode train --help` says what each does).
-    """
-
-    epochs: int = 4000
-    batch_size: int = 128
-    lr: float = 1e-3
-    beta1: float = 0.9
-    beta2: float = 0.999
-    eps: float = 1e-8
-    clip: float = 500.0
-    clip_mode: str = "per-array"
-    val_split: float = 0.3
-    noise: float = 1e-4
-    loss: str = "huber"
-    patience: int = 500
-    lr_decay: float = 0.5
-    min_lr: float = 1e-6
-    seed: int = 0
-    norm: str = "fit"
-    max_bad_steps: int = 5
-    blowup: float = 100.0
-    time_limit: float = None
-    checkpoint_seconds: float = 10.0
-    curriculum: tuple = ()
-    curriculum_epochs: int = 100
-    schedule: str = "plateau"
-    val_graphs: int = 0
-
-    def check(self):
-        """Raise InputError naming the option for a value that cannot work."""
-        def bad(name, problem, expected):
-            raise InputError("training options", name, problem, expected)
-
-        self.curriculum = tuple(int(w) for w in self.curriculum)
-        if any(w < 1 for w in self.curriculum):
-            bad("curriculum", f"is {list(self.curriculum)}", "window lengths >= 1 (steps)")
-        if self.curriculum_epochs < 1:
-            bad("curriculum_epochs", f"is {self.curriculum_epochs}", "an integer >= 1")
-
-        if self.epochs < 0:
-            bad("epochs", f"is {self.epochs}", "an integer >= 0")
-        if self.batch_size < 1:
-            bad("batch_size", f"is {self.batch_size}", "an integer >= 1")
-        if not (self.lr > 0 and math.isfinite(self.lr)):
-            bad("lr", f"is {self.lr}", "a finite number > 0")
-        if not (0 <= self.val_split < 1):
-            bad("val_split", f"is {self.val_split}", "a fraction in [0, 1)")
-        if not (self.noise >= 0):
-            bad("noise", f"is {self.noise}", "a number >= 0")
-        if self.loss not in losses.LOSSES:
-            bad("loss", f"is {self.loss!r}", " or ".join(losses.LOSSES))
-        if self.clip_mode not in CLIP_MODES:
-            bad("clip_mode", f"is {self.clip_mode!r}", " or ".join(CLIP_MODES))
-        if self.norm not in NORMS:
-            bad("norm", f"is {self.norm!r}", " or ".join(map(repr, NORMS)))
-        if self.patience < 1:
-            bad("patience", f"is {self.patience}", "an integer >= 1")
-        if not (0 < self.lr_decay <= 1):
-            bad("lr_decay", f"is {self.lr_decay}", "a factor in (0, 1]")
-        if self.max_bad_steps < 1:
-            bad("max_bad_steps", f"is {self.max_bad_steps}", "an integer >= 1")
-        if not self.blowup >= 0:
-            bad("blowup", f"is {self.blowup}", "a factor >= 0 (0: off)")
-        if self.time_limit is not None and not self.time_limit > 0:
-            bad("time_limit", f"is {self.time_limit}", "a number of seconds > 0")
-        if self.schedule not in SCHEDULES:
-            bad("schedule", f"is {self.schedule!r}", " or ".join(SCHEDULES))
-        if self.val_graphs < 0:
-            bad("val_graphs", f"is {self.val_graphs}", "an integer >= 0")
-        return self
+from . import losses
+from .batches import check_same_kind, epoch_batches, fingerprint, prepare
+from .config import TrainConfig, curriculum_stage
+from .log import TrainLog
+from .optim import array_slices, clip_gradient
+from .state import TrainState, state_path
 
 
 @dataclass
@@ -148,112 +63,6 @@ class TrainResult:
     history: list = field(default_factory=list)
     split: list = field(default_factory=list)
 
-
-
-def state_path(output):
-    """The resume checkpoint beside the model file ``output``."""
-    return str(output) + ".state"
-
-
-# ---------------------------------------------------------------------------
-# The state of a run
-# ---------------------------------------------------------------------------
-class TrainState:
-    """What changes during a run -- current and best weights, Adam, learning rate, counters --
-    and what a resumed run needs besides the data; saves and loads itself (``OUT.state``).
-
-    model : the Model being trained (its theta is updated in place; its normalisation is
-    the run's); best_theta, best_moments (2, P), best_t : the best weights and Adam's state
-    then; epoch : finished epochs; ref_loss : the initial validation loss (blow-up test).
-    """
-
-    def __init__(self, model, config, data_fingerprint):
-        self.model, self.config, self.fingerprint = model, config, data_fingerprint
-        self.opt = Adam(model.theta.size, config.lr, config.beta1, config.beta2, config.eps)
-        self.best_theta = model.theta.copy()
-        self.best_moments, self.best_t = np.stack([self.opt.m, self.opt.v]), 0
-        self.epoch = self.best_epoch = self.last_improve = self.bad_streak = 0
-        self.best_val = self.ref_loss = math.inf
-        self.elapsed = 0.0
-        self.lr_scale = 1.0  # bad steps halve it: the schedule's learning rates are scaled by it
-
-    @property
-    def theta(self):
-        return self.model.theta
-
-    def improve(self, val):
-        """Record the current weights as the best (validation loss ``val``)."""
-        self.best_val, self.best_epoch, self.last_improve, self.bad_streak = val, self.epoch, self.epoch, 0
-        self.best_theta = self.theta.copy()
-        self.best_moments, self.best_t = np.stack([self.opt.m, self.opt.v]), self.opt.t
-
-    def restore_best(self):
-        """Weights and Adam's moments back to those of the best epoch."""
-        self.theta[:] = self.best_theta
-        self.opt.m[:], self.opt.v[:], self.opt.t = self.best_moments[0], self.best_moments[1], self.best_t
-
-    def best_model(self, **attrs):
-        best = self.model.copy()
-        best.theta[:] = self.best_theta
-        best.attrs.update(attrs)
-        return best
-
-    def snapshot(self):
-        """The checkpoint's contents (copies): what `load` needs to continue this run exactly."""
-        m = self.model
-        snap = {"version": np.int64(STATE_VERSION), "theta": self.theta.copy(), "best_theta": self.best_theta.copy(),
-                "epoch": np.int64(self.epoch), "best_val": np.float64(self.best_val),
-                "best_epoch": np.int64(self.best_epoch), "last_improve": np.int64(self.last_improve),
-                "bad_streak": np.int64(self.bad_streak), "elapsed": np.float64(self.elapsed),
-                "config": json.dumps(dataclasses.asdict(self.config)), "fingerprint": self.fingerprint,
-                "spec": json.dumps(dataclasses.asdict(m.spec)), "model_attrs": json.dumps(m.attrs, default=str),
-                "x_mean": m.x_mean, "x_std": m.x_std, "u_mean": m.u_mean, "u_std": m.u_std,
-                "curriculum_stage": np.int64(curriculum_stage(self.config, max(self.epoch, 1))[0]),
-                "best_moments": self.best_moments.copy(), "best_t": np.int64(self.best_t),
-                "ref_loss": np.float64(self.ref_loss), "lr_scale": np.float64(self.lr_scale)}
-        snap.update(self.opt.state())
-        return snap
-
-    @staticmethod
-    def save(path, snap):
-        with atomic_path(path) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **snap)
-
-    @classmethod
-    def load(cls, path):
-        """The state saved at ``path``; InputError if it is missing or unusable."""
-        from .model import Model
-
-        state = load_state(path)
-        config = TrainConfig(**json.loads(str(state["config"])))
-        spec = engine.FieldSpec(**json.loads(str(state["spec"])))
-        model = Model(state["theta"].copy(), spec, state["x_mean"], state["x_std"], state["u_mean"], state["u_std"],
-                      attrs=json.loads(str(state["model_attrs"])))
-        self = cls(model, config, str(state["fingerprint"]))
-        self.best_theta = state["best_theta"].astype(model.dtype)
-        self.opt.load_state(state)
-        self.best_moments, self.best_t = state["best_moments"].copy(), int(state["best_t"])
-        for name in ("epoch", "best_epoch", "last_improve", "bad_streak"):
-            setattr(self, name, int(state[name]))
-        self.best_val, self.ref_loss, self.elapsed = (float(state[k]) for k in ("best_val", "ref_loss", "elapsed"))
-        self.lr_scale = float(state.get("lr_scale", 1.0))
-        return self
-
-
-def load_state(path):
-    """The raw checkpoint (dict of arrays and scalars); InputError if unusable."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            state = {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise InputError(path, "file", "does not exist",
-                         "the .state file an interrupted `mpnode train -o MODEL` leaves beside MODEL") from None
-    except (OSError, ValueError) as e:
-        raise InputError(path, "file", f"is not a readable checkpoint ({e})", "a .state file written by mpnode") from None
-    if int(state.get("version", -1)) != STATE_VERSION:
-        raise InputError(path, "version", f"is {state.get('version')}", f"checkpoint version {STATE_VERSION}")
-    return state
 
 
 # ---------------------------------------------------------------------------
@@ -369,7 +178,7 @@ def cosine_lr(config, used):
 # ---------------------------------------------------------------------------
 class Validator:
     """Full-horizon rollouts of some parts (no noise): the loss per node, and the normalised MSE
-    (mpnode.metrics' definition, steps 1..T) that `mpnode eval` would report on them."""
+    (mpnode.evaluation.metrics' definition, steps 1..T) that `mpnode eval` would report on them."""
 
     def __init__(self, parts, loss, chunk=8192):
         self.loss = loss
@@ -397,12 +206,6 @@ class Validator:
             count += e.shape[0] * e.shape[1]
         nmse = float(np.mean(sq / count / self.var))
         return total / self.n_nodes, (nmse if math.isfinite(total) and math.isfinite(nmse) else math.inf)
-
-
-def curriculum_stage(config, epoch):
-    """(stage, window) of epoch ``epoch`` (1-based): window is None in the full-horizon stage."""
-    stage = min((epoch - 1) // config.curriculum_epochs, len(config.curriculum)) if config.curriculum else 0
-    return stage, (config.curriculum[stage] if stage < len(config.curriculum) else None)
 
 
 class Curriculum:

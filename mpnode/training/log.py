@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 
-from .atomic import atomic_path
+from mpnode.base.atomic import atomic_path
 
 
 def log_path(output):

@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .atomic import atomic_path
-from .errors import InputError
-from .graph import Graph, as_graph, check_csr, is_networkx
+from mpnode.base.atomic import atomic_path
+from mpnode.base.errors import InputError
+from mpnode.base.graph import Graph, as_graph, check_csr, is_networkx
+from mpnode.base.h5 import H5_DAMAGE, one_line, plain_attr
 
 
 @dataclass
@@ -107,7 +108,7 @@ def _float_array(a, name, source):
     try:
         a = np.asarray(a)
     except ValueError as e:  # ragged nested lists
-        raise InputError(source, name, f"is not a rectangular array ({_one_line(e)})",
+        raise InputError(source, name, f"is not a rectangular array ({one_line(e)})",
                          "one number per entry of a regular grid") from None
     if a.dtype.kind in "iu" or (a.dtype.kind == "f" and a.dtype.itemsize < 4):
         a = a.astype(np.float64)
@@ -254,7 +255,7 @@ def read_trajectories(path):
     except FileNotFoundError:
         raise InputError(source, "file", "does not exist", "an existing trajectory file") from None
     except H5_DAMAGE as e:
-        raise InputError(source, "file", f"cannot be opened as HDF5 ({_one_line(e)})",
+        raise InputError(source, "file", f"cannot be opened as HDF5 ({one_line(e)})",
                          "an HDF5 trajectory file (not truncated, not another format)") from None
     try:
         with f:
@@ -262,34 +263,11 @@ def read_trajectories(path):
     except InputError:
         raise
     except H5_DAMAGE as e:  # damage that only shows once data is read
-        raise InputError(source, "file", f"cannot be read ({_one_line(e)})", "an intact HDF5 file") from None
+        raise InputError(source, "file", f"cannot be read ({one_line(e)})", "an intact HDF5 file") from None
     validate_trajectories(traj, source)
     traj.dt = float(traj.dt)
     traj.graph_index = traj.graph_index.astype(np.int64)
     return traj
-
-
-def file_format(path):
-    """The root attribute ``format`` of an HDF5 file ("mpnode.trajectories", "mpnode.model", ...),
-    or None when it has none; InputError when the file cannot be opened."""
-    import h5py
-
-    source = os.fspath(path)
-    try:
-        with h5py.File(source, "r") as f:
-            fmt = plain_attr(f.attrs.get("format"))
-    except FileNotFoundError:
-        raise InputError(source, "file", "does not exist", "an existing mpnode file") from None
-    except H5_DAMAGE as e:
-        raise InputError(source, "file", f"cannot be opened as HDF5 ({_one_line(e)})",
-                         "an HDF5 file (not truncated, not another format)") from None
-    return fmt if isinstance(fmt, str) else None
-
-
-#: what h5py raises for damaged bytes: OSError (unreadable blocks), RuntimeError (corrupt headers,
-#: e.g. "wrong version number in dataspace message"), KeyError (an object that cannot be opened),
-#: TypeError/ValueError (damaged datatype messages)
-H5_DAMAGE = (OSError, RuntimeError, KeyError, TypeError, ValueError)  # + "Unknown string encoding", ...
 
 
 def _read_open_file(f, source):
@@ -399,27 +377,6 @@ def _values(ds):
     return a
 
 
-def plain_attr(v):
-    """An HDF5 attribute value as plain Python: numpy scalars -> int/float/bool, bytes -> str
-    (undecodable bytes stay bytes), string arrays -> lists; shared by the file readers."""
-    if isinstance(v, str):
-        return str(v)
-    if isinstance(v, bytes):
-        try:
-            return v.decode("utf-8")
-        except UnicodeDecodeError:
-            return bytes(v)
-    if isinstance(v, np.ndarray):
-        return [plain_attr(e) for e in v.tolist()] if v.dtype.kind in "SOU" else v
-    if isinstance(v, np.generic):
-        return v.item()
-    return v
-
-
-def _one_line(e):
-    return " ".join(str(e).split())
-
-
 # ---- writing --------------------------------------------------------------
 
 def write_trajectories(path, traj=None, *, x=None, u=None, graph=None, graph_index=None, dt=None, system=None,
@@ -473,7 +430,7 @@ def write_trajectories(path, traj=None, *, x=None, u=None, graph=None, graph_ind
             try:
                 target[key] = value
             except (TypeError, ValueError) as e:
-                raise InputError(path, key, f"cannot be stored in HDF5 ({_one_line(e)})",
+                raise InputError(path, key, f"cannot be stored in HDF5 ({one_line(e)})",
                                  "numbers, strings or arrays of them") from None
 
 

@@ -7,7 +7,7 @@ epoch shuffles every file's training trajectories, cuts them into batches and sh
 the order of all batches together, so several files are interleaved in proportion to
 their size.  The shuffle of epoch e depends only on (seed, e).
 
-Horizon windows (the curriculum of `mpnode.train`): every training trajectory of T steps
+Horizon windows (the curriculum of `mpnode.training`): every training trajectory of T steps
 is cut into consecutive windows of w steps, each starting from its own (noisy) true
 state: starts 0, w, 2w, ... and, when w does not divide T, one last window ending at T
 (overlapping the one before), so every transition is trained on and the epoch is
@@ -19,28 +19,9 @@ import zlib
 
 import numpy as np
 
-from .errors import InputError
-from .graph import block_diagonal
-from .renormalise import renormalised
-
-
-def check_data(model, datasets, sources, allow_dt_mismatch=False):
-    """Raise InputError unless every file fits the model (dx, du, N for a node model) and its dt.
-
-    datasets : list of Trajectories; sources : their file names (for the messages).
-    """
-    s = model.spec
-    for traj, src in zip(datasets, sources):
-        if traj.state_dim != s.state_dim:
-            raise InputError(src, "x", f"has {traj.state_dim} state dimensions per node but the model has "
-                             f"{s.state_dim}", f"a file of the system the model was trained on (dx = {s.state_dim})")
-        if traj.control_dim != s.control_dim:
-            raise InputError(src, "u", f"has {traj.control_dim} control dimensions per node but the model has "
-                             f"{s.control_dim}", f"du = {s.control_dim}")
-        model.check_nodes(traj.n_nodes, src, "x")
-        if not allow_dt_mismatch and not math.isclose(traj.dt, s.dt, rel_tol=1e-9, abs_tol=0.0):
-            raise InputError(src, "dt", f"is {traj.dt:g} but the model was trained with dt = {s.dt:g}",
-                             f"data saved every {s.dt:g} (or pass the flag that allows another dt)")
+from mpnode.base.errors import InputError
+from mpnode.base.graph import block_diagonal
+from mpnode.model.renormalise import renormalised
 
 
 def check_same_kind(datasets, sources):
@@ -186,7 +167,7 @@ def prepare(model, datasets, config):
 
     config.norm "fit" sets ``model``'s constants to the training split's (a new model);
     "refit" does too, and changes the weights so that the model computes what it did
-    (mpnode.renormalise: a trained model fine-tuned on data of another spread); "keep" leaves them.
+    (mpnode.model.renormalise: a trained model fine-tuned on data of another spread); "keep" leaves them.
     Modifies ``model`` in place unless "keep".
     """
     split = make_split(datasets, config)

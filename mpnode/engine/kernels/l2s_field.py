@@ -13,7 +13,14 @@ psi (H), W_upd (H, H), b_upd (H), W_out (H, dx), b_out (dx).
 import numpy as np
 from numba import njit
 
-from .layers import JIT, aggregate_tile, dense_backward, dense_forward, dense_tanh_backward, dense_tanh_forward
+from .layers import (
+    JIT,
+    aggregate_tile,
+    dense_backward,
+    dense_forward,
+    dense_tanh_backward,
+    dense_tanh_forward,
+)
 
 
 @njit(**JIT)

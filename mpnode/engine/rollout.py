@@ -1,0 +1,167 @@
+"""The engine: RK4 rollouts of a field over a flat (block-diagonal) graph, and their exact VJP.
+
+`forward` integrates; `forward_with_vjp` also returns the vector-Jacobian product of
+the rollout, the *discrete adjoint*: for any cotangent gx of the output states it gives
+the exact gradient, with respect to the parameters and the initial state, of
+<gx, rollout> as computed (not of the ODE it approximates).  Losses, windows, multiple
+shooting are the caller's business (`mpnode.training.losses`).  Cost: memory for one state per RK4
+step (T*substeps+1 arrays of (M, dz)); time about 4x a rollout (forward, recomputed
+stages, and a VJP that costs about twice a forward).  Stage values are recomputed rather
+than stored, so memory does not grow with the hidden width.
+
+Arrays here are time-major and flat over nodes: x (T+1, M, dx), u (T, M, du).
+`mpnode.model` turns (B, T+1, N, dx) batches into this layout.
+"""
+import functools
+from dataclasses import replace
+
+import numpy as np
+
+from mpnode.base.graph import Graph
+
+from .backend import resolve_backend, single_threaded_blas
+from .plan import plan_for
+from .spec import checked_controls
+
+
+# ---------------------------------------------------------------------------
+# Entry points
+# ---------------------------------------------------------------------------
+def _prepare(spec, theta, graph, u, n_steps, n_nodes, driver, ordering):
+    dtype = theta.dtype
+    u = checked_controls(spec, graph, u, n_steps, n_nodes, dtype)
+    h = dtype.type(spec.dt / spec.substeps)
+    return u, plan_for(graph, spec, dtype, driver, ordering), h
+
+
+def _whole_systems(spec, x0, u, graph):
+    """A plain NODE as the kernels run it: an MP-NODE field without messages on one "node"
+    per system, whose state is [x_1, ..., x_N] and control [u_1, ..., u_N] (node-major, so
+    the flat rows of a system reshape to it for free), on a graph with no edges."""
+    n = spec.n_nodes
+    m, dx = x0.shape
+    if graph.n_nodes != m:
+        raise ValueError(f"graph has {graph.n_nodes} nodes but the states have {m}")
+    if m % n:
+        raise ValueError(f"{m} nodes are not whole systems of {n} nodes (a node model's n_nodes)")
+    inner = replace(spec, kind="mpnode", state_dim=n * dx, control_dim=n * spec.control_dim, n_nodes=None)
+    u = None if u is None else np.asarray(u).reshape(u.shape[0], m // n, n * spec.control_dim)
+    return inner, np.asarray(x0).reshape(m // n, n * dx), u, _edgeless(m // n)
+
+
+@functools.lru_cache(maxsize=16)
+def _edgeless(n):
+    return Graph(np.zeros(n + 1, dtype=np.int64), np.zeros(0, dtype=np.int64))
+
+
+def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering):
+    """The forward rollout from the full state z0: (x (n_steps+1, M, dx) and z at the end in
+    the user's node order, states or None and u in the kernels' order, plan, h)."""
+    from . import kernels
+
+    theta = np.ascontiguousarray(theta)
+    z0 = np.ascontiguousarray(z0, dtype=theta.dtype)
+    m = z0.shape[0]
+    if z0.shape != (m, spec.state_width):
+        raise ValueError(f"the full state has shape {z0.shape}, expected (M, {spec.state_width}) (x, then messages)")
+    u, plan, h = _prepare(spec, theta, graph, u, n_steps, m, driver, ordering)
+    z0, u = plan.to_kernel_order(z0), np.ascontiguousarray(plan.to_kernel_order(u, axis=1))
+    out = np.empty((n_steps + 1, m, spec.state_dim), dtype=theta.dtype)
+    n_states = n_steps * spec.substeps + 1 if keep_states else 0
+    states = np.empty((n_states, m if keep_states else 0, spec.state_width), dtype=theta.dtype)
+    zend = np.empty_like(z0)
+    g = (plan.csr.indptr, plan.csr.indices, plan.weight)
+    with single_threaded_blas():
+        if plan.blocks is None:
+            kernels.rollout_stagewise(theta, spec.dims, z0, u, g, spec.substeps, h, out, states, zend)
+        else:
+            kernels.rollout_blocks(theta, spec.dims, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off,
+                                   plan.dense_A, spec.substeps, h, out, states, zend)
+    return plan.to_user_order(out), states, plan.to_user_order(zend[None])[0], u, plan, h
+
+
+def initial_state(spec, x0, dtype=None):
+    """The full state [x0, 0] (M, dx + dm) a rollout starts from: messages start at 0."""
+    x0 = np.asarray(x0)
+    z0 = np.zeros((x0.shape[0], spec.state_width), dtype=dtype or x0.dtype)
+    z0[:, :spec.state_dim] = x0
+    return z0
+
+
+def forward(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", backend="auto", ordering="auto"):
+    """Integrate from x0 (messages start at 0).
+
+    x0 : ndarray, shape (M, dx); u : ndarray, shape (n_steps, M, du) or None;
+    returns x : ndarray, shape (n_steps+1, M, dx), in theta's dtype.
+    driver, ordering : see plan_for.  For kind "node" the graph only gives M (whole systems).
+    backend : see `resolve_backend` ("auto": the compiled kernels, NumPy without numba).
+    """
+    z0 = initial_state(spec, x0, np.asarray(theta).dtype)
+    return integrate(spec, theta, z0, graph, u, n_steps, driver, backend, ordering)[0]
+
+
+def integrate(spec, theta, z0, graph, u=None, n_steps=1, driver="auto", backend="auto", ordering="auto"):
+    """Integrate from a full state z0 = [x, m] (M, dx + dm), e.g. where an earlier call stopped.
+
+    Returns (x, z): x (n_steps+1, M, dx) as `forward`, z (M, dx + dm) the full state at the
+    end.  Calling this T times with n_steps=1, each from the last z, gives bit for bit the
+    rollout of T steps (same kernels, same plan): the stepping API (mpnode.Simulator) is
+    built on it.  Other arguments as `forward`.
+    """
+    if resolve_backend(backend) == "numpy":
+        from . import numpy_path
+
+        return numpy_path.integrate(spec, theta, z0, graph, u, n_steps)
+    z_shape = np.shape(z0)
+    shape = (n_steps + 1, z_shape[0], spec.state_dim)
+    if spec.kind == "node":
+        spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
+    x, _, zend, _, _, _ = _run(spec, theta, z0, graph, u, n_steps, driver, False, ordering)
+    return x.reshape(shape), zend.reshape(z_shape)
+
+
+def forward_with_vjp(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", keep_states=True, ordering="auto"):
+    """`forward`, and the vector-Jacobian product of the rollout (the discrete adjoint).
+
+    Returns (x, vjp): x as `forward`; ``vjp(gx)`` takes the cotangent of every output
+    state, gx : ndarray, shape (n_steps+1, M, dx), and returns (gtheta like theta,
+    gx0 of shape (M, dx)): the gradient of sum(gx * x) with respect to theta and x0.
+    vjp may be called several times; it keeps one state per RK4 step alive
+    (``keep_states=False``: no vjp, the rollout alone).  Compiled kernels only (numba):
+    the NumPy path rolls out but does not train.
+    """
+    resolve_backend("numba", purpose="computing gradients (training)")
+    from . import kernels
+
+    shape = (n_steps + 1,) + np.shape(x0)
+    if spec.kind == "node":
+        spec, x0, u, graph = _whole_systems(spec, x0, u, graph)
+    z0 = initial_state(spec, x0, np.asarray(theta).dtype)
+    x, states, _, u, plan, h = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering)
+    x = x.reshape(shape)
+    if not keep_states:
+        return x, None
+    theta = np.ascontiguousarray(theta)
+    m = states.shape[1]
+
+    def vjp(gx):
+        if np.shape(gx) != shape:
+            raise ValueError(f"the cotangent has shape {np.shape(gx)}, the rollout {shape}")
+        gx = np.asarray(gx, dtype=theta.dtype).reshape(n_steps + 1, m, spec.state_dim)
+        gx = np.ascontiguousarray(plan.to_kernel_order(gx, axis=1))
+        tgraph = plan.transposed
+        n_parts = len(plan.blocks) - 1 if plan.blocks is not None else -(-m // kernels.STAGE_TILE)
+        gthetas = np.empty((n_parts, theta.size), dtype=theta.dtype)
+        gx0 = np.empty((m, spec.state_dim), dtype=theta.dtype)
+        g, gt = (plan.csr.indptr, plan.csr.indices, plan.weight), (tgraph.indptr, tgraph.indices)
+        with single_threaded_blas():
+            if plan.blocks is None:
+                kernels.vjp_stagewise(theta, spec.dims, u, g, gt, spec.substeps, h, states, gx, gthetas, gx0)
+            else:
+                kernels.vjp_blocks(theta, spec.dims, u, g, gt, plan.blocks, plan.dense_n, plan.dense_off,
+                                   plan.dense_A, plan.dense_AT, spec.substeps, h, states, gx, gthetas, gx0)
+        if plan.order is not None:
+            gx0[plan.order] = gx0.copy()
+        return gthetas.sum(axis=0, dtype=theta.dtype), gx0.reshape(shape[1:])
+
+    return x, vjp

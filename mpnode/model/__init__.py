@@ -1,0 +1,8 @@
+"""The model: a kind, its weights, integration settings and normalisation (`Model`), its file
+(docs/model-format.md), a change of normalisation that keeps what it computes, and
+`Simulator`, which steps it one dt at a time.
+
+Owns: `model`, `file`, `renormalise`, `simulator`.  May import: mpnode.engine, mpnode.base.
+"""
+from .model import Model, batch_graph, check_data  # noqa: F401
+from .simulator import Simulator  # noqa: F401

@@ -1,0 +1,7 @@
+"""Running trainings from files: one run (`train`, `finetune`: the functions behind the
+commands), sweeps of many runs from a TOML file, and the executors they run on (a local
+process pool or Dask).
+
+Owns: `run`, `sweep`, `executors`.  May import: mpnode.training and everything below it.
+"""
+from .run import finetune, parse_duration, read_all, train, validation_errors  # noqa: F401

@@ -1,0 +1,103 @@
+"""`TrainConfig`: every option of a training run besides the model and the data, its defaults
+and its checks (the command line's training flags and the sweep's keys are these fields)."""
+import math
+from dataclasses import dataclass
+
+from mpnode.base.errors import InputError
+
+from . import losses
+from .optim import CLIP_MODES
+
+SCHEDULES = ("plateau", "cosine")
+#: how training treats the model's normalisation constants (mpnode.training.batches.prepare)
+NORMS = ("fit", "refit", "keep")
+
+
+@dataclass
+class TrainConfig:
+    """Everything that decides a training run besides the model and the data.
+
+    time_limit is the run's total training time in seconds (None: no limit; a resumed run
+    counts the time before it, as epochs counts the epochs before it); norm is "fit"
+    (z-score constants fitted on the training split), "refit" (the same for a trained model,
+    whose weights are changed to compute what they did) or "keep" (the model's own constants,
+    for finetuning); schedule is "plateau" (cut the learning rate by lr_decay after
+    ``patience`` epochs without a new best) or "cosine" (from lr down to min_lr over the
+    budget: the epochs, or the time limit when that comes first); val_graphs: hold out
+    that many whole graphs of every file with more graphs for validation (mpnode.training.batches).
+    The defaults are the command line's (`mpnode train --help` says what each does).
+    """
+
+    epochs: int = 4000
+    batch_size: int = 128
+    lr: float = 1e-3
+    beta1: float = 0.9
+    beta2: float = 0.999
+    eps: float = 1e-8
+    clip: float = 500.0
+    clip_mode: str = "per-array"
+    val_split: float = 0.3
+    noise: float = 1e-4
+    loss: str = "huber"
+    patience: int = 500
+    lr_decay: float = 0.5
+    min_lr: float = 1e-6
+    seed: int = 0
+    norm: str = "fit"
+    max_bad_steps: int = 5
+    blowup: float = 100.0
+    time_limit: float = None
+    checkpoint_seconds: float = 10.0
+    curriculum: tuple = ()
+    curriculum_epochs: int = 100
+    schedule: str = "plateau"
+    val_graphs: int = 0
+
+    def check(self):
+        """Raise InputError naming the option for a value that cannot work."""
+        def bad(name, problem, expected):
+            raise InputError("training options", name, problem, expected)
+
+        self.curriculum = tuple(int(w) for w in self.curriculum)
+        if any(w < 1 for w in self.curriculum):
+            bad("curriculum", f"is {list(self.curriculum)}", "window lengths >= 1 (steps)")
+        if self.curriculum_epochs < 1:
+            bad("curriculum_epochs", f"is {self.curriculum_epochs}", "an integer >= 1")
+
+        if self.epochs < 0:
+            bad("epochs", f"is {self.epochs}", "an integer >= 0")
+        if self.batch_size < 1:
+            bad("batch_size", f"is {self.batch_size}", "an integer >= 1")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            bad("lr", f"is {self.lr}", "a finite number > 0")
+        if not (0 <= self.val_split < 1):
+            bad("val_split", f"is {self.val_split}", "a fraction in [0, 1)")
+        if not (self.noise >= 0):
+            bad("noise", f"is {self.noise}", "a number >= 0")
+        if self.loss not in losses.LOSSES:
+            bad("loss", f"is {self.loss!r}", " or ".join(losses.LOSSES))
+        if self.clip_mode not in CLIP_MODES:
+            bad("clip_mode", f"is {self.clip_mode!r}", " or ".join(CLIP_MODES))
+        if self.norm not in NORMS:
+            bad("norm", f"is {self.norm!r}", " or ".join(map(repr, NORMS)))
+        if self.patience < 1:
+            bad("patience", f"is {self.patience}", "an integer >= 1")
+        if not (0 < self.lr_decay <= 1):
+            bad("lr_decay", f"is {self.lr_decay}", "a factor in (0, 1]")
+        if self.max_bad_steps < 1:
+            bad("max_bad_steps", f"is {self.max_bad_steps}", "an integer >= 1")
+        if not self.blowup >= 0:
+            bad("blowup", f"is {self.blowup}", "a factor >= 0 (0: off)")
+        if self.time_limit is not None and not self.time_limit > 0:
+            bad("time_limit", f"is {self.time_limit}", "a number of seconds > 0")
+        if self.schedule not in SCHEDULES:
+            bad("schedule", f"is {self.schedule!r}", " or ".join(SCHEDULES))
+        if self.val_graphs < 0:
+            bad("val_graphs", f"is {self.val_graphs}", "an integer >= 0")
+        return self
+
+
+def curriculum_stage(config, epoch):
+    """(stage, window) of epoch ``epoch`` (1-based): window is None in the full-horizon stage."""
+    stage = min((epoch - 1) // config.curriculum_epochs, len(config.curriculum)) if config.curriculum else 0
+    return stage, (config.curriculum[stage] if stage < len(config.curriculum) else None)
