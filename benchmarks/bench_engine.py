@@ -131,8 +131,8 @@ def macs_per_node(case, kind):
 def spec_for(case, kind, zero_messages=False):
     c = CASES[case]
     if kind == "l2s":
-        return FieldSpec(c["dx"], 0, 0, H, DT, 1, kind="l2s", aggregation="sum")
-    return FieldSpec(c["dx"], 0, c["dm"], H, DT, 1, zero_messages=zero_messages)
+        return FieldSpec(kind="l2s", state_dim=c["dx"], hidden=H, dt=DT)
+    return FieldSpec(state_dim=c["dx"], message_dim=c["dm"], hidden=H, dt=DT, zero_messages=zero_messages)
 
 
 # ---------------------------------------------------------------------------

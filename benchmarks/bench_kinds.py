@@ -31,7 +31,7 @@ def measure(name, scene_name, kind):
     n = graph.n_nodes
     dx = {"coupled_pendulum": 2, "lorenz": 3, "gene": 1, "kuramoto": 3, "quadrotor_load": 13}[scene.system]
     du = 4 if scene.system == "quadrotor_load" else 0
-    model = Model.create(dx, du, 3, 32, scene.dt, kind=kind, n_nodes=n if kind == "node" else None)
+    model = Model.create(dx, du, message_dim=3, hidden=32, dt=scene.dt, kind=kind, n_nodes=n if kind == "node" else None)
     rng = np.random.default_rng(0)
     x = to_time_major(rng.standard_normal((B, T + 1, n, dx)).astype(np.float32))
     u = to_time_major(rng.standard_normal((B, T, n, du)).astype(np.float32)) if du else None

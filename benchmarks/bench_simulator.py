@@ -28,7 +28,7 @@ LONG = 1000
 
 
 def make_model(kind, n_nodes, dtype, dm=DM):
-    return Model.create(DX, 0, dm, H, DT, kind=kind, n_nodes=n_nodes if kind == "node" else None, dtype=dtype)
+    return Model.create(DX, 0, message_dim=dm, hidden=H, dt=DT, kind=kind, n_nodes=n_nodes if kind == "node" else None, dtype=dtype)
 
 
 def us_per_step(kind, backend, dtype, n_steps=2000, warmup=200):
@@ -58,11 +58,11 @@ def s1_numpy_vs_compiled(kind, dtype, reps=9):
     c = CASES["S1"]
     n = c["N"]
     if kind == "l2s":
-        spec = engine.FieldSpec(c["dx"], 0, 0, H, DT, 1, kind="l2s", aggregation="sum")
+        spec = engine.FieldSpec(kind="l2s", state_dim=c["dx"], hidden=H, dt=DT)
     elif kind == "node":
-        spec = engine.FieldSpec(c["dx"], 0, 0, H, DT, 1, kind="node", n_nodes=n)
+        spec = engine.FieldSpec(kind="node", state_dim=c["dx"], hidden=H, dt=DT, n_nodes=n)
     else:
-        spec = engine.FieldSpec(c["dx"], 0, c["dm"], H, DT, 1)
+        spec = engine.FieldSpec(state_dim=c["dx"], message_dim=c["dm"], hidden=H, dt=DT)
     graph = block_diagonal([c["graph"]()] * c["B"])
     theta = glorot_init(spec, seed=0, dtype=dtype)
     x0 = np.random.default_rng(1).standard_normal((graph.n_nodes, c["dx"])).astype(dtype)

@@ -6,6 +6,9 @@ import tempfile
 import click
 
 from mpnode.base.errors import InputError, NumericalError
+from mpnode.base.options import aliases
+from mpnode.engine.spec import AGGREGATIONS, KINDS, LINEAR_TARGETS
+from mpnode.model.config import DTYPES, ModelConfig
 from mpnode.training import TrainConfig
 from mpnode.training.recipes import AUTO_ALL, FINETUNE_AUTO
 
@@ -17,6 +20,13 @@ SCENE_TRAJECTORIES = 300
 SCENE_EVAL_TRAJECTORIES = 100
 SCENE_TIME_LIMIT = "3m"
 DEFAULT = TrainConfig()
+MODEL_DEFAULT = ModelConfig()
+
+
+def flags(cls, name):
+    """The flags of option ``name`` of the configuration class ``cls``: its own name first, then
+    its older names, and the parameter name (the library's)."""
+    return [f"--{n.replace('_', '-')}" for n in (name, *aliases(cls, name))] + [name]
 
 
 class Duration(click.ParamType):
@@ -79,7 +89,7 @@ def training_options(f):
                      help="Seed of the initial weights, the split, the noise and the shuffles."),
         click.option("--substeps", type=click.IntRange(min=1), help="RK4 steps per dt (train default 1; "
                      "finetune default: the model's)."),
-        click.option("--horizon-curriculum", "curriculum", callback=_parse_curriculum, metavar="W1,W2,...,full",
+        click.option(*flags(TrainConfig, "curriculum"), callback=_parse_curriculum, metavar="W1,W2,...,full",
                      help="Train first on windows of W1 steps, then W2, ..., then the full horizon (e.g. 5,10,full; "
                           "'full' is implied at the end).  Each trajectory is cut into consecutive windows, each "
                           "starting from its true state; validation stays on the full horizon."),
@@ -158,39 +168,37 @@ def _fmt(v):
     return "-" if v is None else f"{v:.4g}"
 
 
-def run_with_progress(epochs, output, call, plot=None):
-    """Run ``call(progress=, notify=)`` (a runs.train/finetune) with a progress bar on stderr;
-    print the outcome; draw the training curves to ``plot``; exit 3 on divergence, 130 on Ctrl-C."""
+def run_with_progress(epochs, time_limit, output, call, plot=None):
+    """Run ``call(progress=, notify=)`` (a runs.train/finetune) with a progress bar on stderr that
+    follows whichever of ``epochs`` and ``time_limit`` (seconds or None) ends the run first; print
+    the outcome; draw the training curves to ``plot``; exit 3 on divergence, 130 on Ctrl-C."""
     from mpnode.training import state_path
     from mpnode.training.log import log_path
 
     state = {"bar": None}
 
-    def show(record):
-        if record is None:
-            return ""
-        window = f"  window {record['window']}" if record.get("window") is not None else ""
-        return (f"epoch {record['epoch']}  train {_fmt(record['train_loss'])}  val {_fmt(record['val_loss'])} "
-                f"(nMSE {_fmt(record.get('val_nmse'))})  best {_fmt(record['best_val_loss'])}  lr {record['lr']:.2g}"
-                f"{window}")
-
     def progress(record):
+        done = record["epoch"] / epochs if epochs else 1.0
+        if time_limit:
+            done = max(done, record["elapsed"] / time_limit)
         bar = state["bar"]
-        bar.update(max(0, record["epoch"] - bar.pos), record)
+        bar.update(max(0, min(BAR, round(done * BAR)) - bar.pos), record)
 
     def notify(msg):
         click.echo(("\n" if state["bar"] is not None else "") + msg, err=True)
 
-    with click.progressbar(length=max(epochs, 1), label="training", file=sys.stderr, item_show_func=show,
+    with click.progressbar(length=BAR, label="training", file=sys.stderr, item_show_func=progress_line,
                            show_eta=True) as bar:
         state["bar"] = bar
         result = call(progress=progress, notify=notify)
     click.echo(f"{result.status}: {result.message}")
-    click.echo(f"best validation loss {result.best_val_loss:.6g} at epoch {result.best_epoch} of {result.epoch}; "
-               f"{result.seconds:.1f} s; learning rate now {result.lr:g}")
+    best = (f"validation normalised MSE {_fmt(result.val_nmse)}" if result.validation
+            else f"loss {result.best_val_loss:.4g} (no validation trajectories: on the training data)")
+    click.echo(f"best {best} at epoch {result.best_epoch} of {result.epoch}; {result.seconds:.1f} s; "
+               f"learning rate now {result.lr:g}")
     click.echo(f"wrote {output} (best model), {log_path(output)} (log), {state_path(output)} (checkpoint for --resume)")
     if plot:
-        plot_training(output, plot)
+        plot_training(output, plot, result.config.loss)
     if result.status == "diverged":
         raise NumericalError(result.message)
     if result.status == "interrupted":
@@ -199,53 +207,64 @@ def run_with_progress(epochs, output, call, plot=None):
     return result
 
 
-def plot_training(output, plot):
+#: steps of the training progress bar (a fraction of the epochs or of the time limit)
+BAR = 1000
+
+
+def progress_line(record):
+    """What the progress bar shows of an epoch's log record: the validation normalised MSE (1 is no
+    better than predicting the mean, 0 perfect), the best so far, the learning rate."""
+    if record is None:
+        return ""
+    window = f"  window {record['window']} steps" if record.get("window") is not None else ""
+    return (f"epoch {record['epoch']}  validation nMSE {_fmt(record.get('val_nmse'))}  "
+            f"best {_fmt(record.get('best_val_nmse'))}  lr {record['lr']:.2g}{window}")
+
+
+def plot_training(output, plot, loss):
     """The training curves of the run beside ``output`` (its whole log, resumed parts included)."""
-    from mpnode.model import Model
     from mpnode.plot import plot_training as draw
     from mpnode.training.log import log_path
 
-    loss = Model.load(output).attrs.get("loss") if os.path.exists(output) else None
     draw(log_path(output), plot, loss=loss, title=os.path.basename(output))
     click.echo(f"wrote {plot} (training curves)")
 
 
-def print_validation(result, datasets, sources):
-    from mpnode.runs import validation_errors
-
-    for src, n, mean, last in validation_errors(result, datasets, sources):
-        click.echo(f"validation normalised MSE on {src} ({n} trajectories): mean over steps {mean:.4g}, "
-                   f"last step {last:.4g}")
+def print_validation(result):
+    for f in result.validation:
+        click.echo(f"validation normalised MSE on {f['file']} ({f['trajectories']} trajectories): mean over steps "
+                   f"{f['nmse']:.4g}, last step {f['nmse_last']:.4g}")
 
 
 @main.command("train")
 @click.argument("data", nargs=-1, required=True)
-@click.option("--model", "kind", type=click.Choice(["mpnode", "l2s", "node"]), default="mpnode", show_default=True,
+@click.option(*flags(ModelConfig, "kind"), type=click.Choice(KINDS), default=MODEL_DEFAULT.kind, show_default=True,
               help="mpnode: one module per node with learned messages (runs on any graph); l2s: the paper's "
                    "graph-network ODE baseline (any graph); node: one neural ODE for the whole system (its N only).")
-@click.option("--message-dim", type=click.IntRange(min=0), default=3, show_default=True,
-              help="Message size dm (mpnode only).")
-@click.option("--hidden", type=click.IntRange(min=1), default=32, show_default=True, help="Hidden width H.")
-@click.option("--aggregate", "aggregation", type=click.Choice(["mean", "sum", "scaled"]),
+@click.option("--message-dim", type=click.IntRange(min=0), default=MODEL_DEFAULT.message_dim, show_default=True,
+              help="Message size: the number of learned message variables each node carries (mpnode only).")
+@click.option("--hidden", type=click.IntRange(min=1), default=MODEL_DEFAULT.hidden, show_default=True,
+              help="Hidden width: units in each of the network's two tanh layers.")
+@click.option(*flags(ModelConfig, "aggregation"), type=click.Choice(AGGREGATIONS),
               help="How a node combines what its neighbours send: mean (the paper's), sum, or scaled (the sum over "
                    "the training graphs' mean in-degree).  Default: mean (mpnode), sum (l2s).")
 @click.option("--linear-aggregate", is_flag=True,
               help="Also feed the aggregate straight to the field, around the MLP (k = MLP([x, u, m']) + m' W_agg, "
                    "W_agg starting at 0): the field can then follow the larger aggregates of denser graphs than "
                    "its training graphs (mpnode with messages; docs/model-format.md).")
-@click.option("--linear-aggregation", type=click.Choice(["mean", "sum", "scaled"]),
+@click.option("--linear-aggregation", type=click.Choice(AGGREGATIONS),
               help="The aggregate the linear path reads, when not the MLP's own (implies --linear-aggregate).  "
                    "E.g. --aggregate mean --linear-aggregation scaled: the MLP sees the degree-free mean, which "
                    "stays in range on denser graphs, and the degree reaches the field only through the linear "
                    "path (scaled sum, as PNA's degree scalers).")
-@click.option("--linear-target", type=click.Choice(["all", "state"]),
+@click.option("--linear-target", type=click.Choice(LINEAR_TARGETS),
               help="What the linear path adds to: all (dx/dt and the messages' dm/dt; the default) or state "
                    "(dx/dt alone, so the messages' own dynamics never hear the degree; implies "
                    "--linear-aggregate).")
 @click.option("--zero-messages", is_flag=True, help="Clamp messages to 0 (the paper's ablation).")
 @click.option("--self-messages", is_flag=True,
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")
-@click.option("--dtype", type=click.Choice(["float32", "float64"]), default="float32", show_default=True)
+@click.option("--dtype", type=click.Choice(DTYPES), default=MODEL_DEFAULT.dtype, show_default=True)
 @recipe_option("the MP-NODE paper's: mean aggregation, plateau schedule, batch 128")
 @click.option("--trajectories", type=click.IntRange(min=2), default=SCENE_TRAJECTORIES, show_default=True,
               help="Only when DATA is a scene: trajectories to generate.")
@@ -287,9 +306,9 @@ def train_cmd(data, trajectories, recipe, **o):
         options["time_limit"] = runs.parse_duration(SCENE_TIME_LIMIT)
     datasets = runs.read_all(data)
     resume = o["resume"]
-    result = run_with_progress(o["epochs"], output, lambda **kw: runs.train(
+    result = run_with_progress(o["epochs"], options.get("time_limit"), output, lambda **kw: runs.train(
         data, output, options, recipe_name=recipe, resume=resume, datasets=datasets, **kw), plot)
-    print_validation(result, datasets, list(data))
+    print_validation(result)
     if scene is not None:
         _evaluate_on_fresh(scene, result.model, output, o["seed"] + 1)
 
@@ -354,7 +373,7 @@ def finetune_cmd(model_file, data, refit_norm, recipe, **o):
     check_outputs(output, [model_file, *data], plot=o["plot"])
     datasets = runs.read_all(data)
     resume, options = o["resume"], given_options(o)
-    result = run_with_progress(o["epochs"], output, lambda **kw: runs.finetune(
+    result = run_with_progress(o["epochs"], o["time_limit"], output, lambda **kw: runs.finetune(
         model_file, data, output, options, refit_norm=refit_norm, recipe_name=recipe, resume=resume,
         datasets=datasets, **kw), o["plot"])
-    print_validation(result, datasets, list(data))
+    print_validation(result)

@@ -8,8 +8,9 @@ mpnode.engine.kernels; test_engine checks its aggregation on its own.
 import numpy as np
 
 from mpnode.base.graph import Graph, block_diagonal
-from mpnode.engine import FieldSpec, layouts
+from mpnode.engine import layouts
 from mpnode.engine import numpy_path as numpy_engine
+from mpnode.engine.spec import Aggregation, FieldSpec, default_aggregation
 
 
 # ---------------------------------------------------------------------------
@@ -79,9 +80,17 @@ def random_theta(rng, spec, scale=1.0, dtype=np.float64):
 # ---------------------------------------------------------------------------
 # Test problems
 # ---------------------------------------------------------------------------
+AGGREGATION_OPTIONS = ("aggregation", "linear_aggregate", "linear_aggregation", "linear_target", "mean_degree")
+
+
 def spec_(**kw):
+    """A FieldSpec of small sizes; the aggregation may be given as the model options (flat)."""
+    agg = {k: kw.pop(k) for k in AGGREGATION_OPTIONS if k in kw and not isinstance(kw[k], Aggregation)}
     base = dict(state_dim=2, control_dim=2, message_dim=3, hidden=8, dt=0.1, substeps=3)
     base.update(kw)
+    if agg:
+        rule = agg.pop("aggregation", None) or default_aggregation(base.get("kind", "mpnode"))
+        base["aggregation"] = Aggregation.from_options(rule, **agg)
     return FieldSpec(**base)
 
 

@@ -82,7 +82,7 @@ def test_bad_inputs_exit_2(tmp_path):
 
 
 def test_simulate_a_scene_with_a_trained_model(tmp_path):
-    Model.create(2, 0, 3, 8, 0.05).save(tmp_path / "m.h5")
+    Model.create(2, 0, message_dim=3, hidden=8, dt=0.05).save(tmp_path / "m.h5")
     res = run("simulate", tmp_path / "m.h5", "coupled_pendulum", "-o", tmp_path / "s.h5", "-B", 5, "-T", 7)
     assert res.exit_code == 0, res.output
     s = read_trajectories(tmp_path / "s.h5")
@@ -131,18 +131,17 @@ def test_the_recipe_fills_what_the_user_leaves_unset(tmp_path):
     assert "recipe auto for gene: aggregation mean" in res.output and "linear_aggregation scaled" in res.output
     assert "linear_target state" in res.output and "val_graphs 1" in res.output
     auto = Model.load(tmp_path / "auto.h5").spec
-    assert (auto.aggregation, auto.linear_aggregate, auto.linear_aggregation, auto.linear_target) == \
-        ("mean", True, "scaled", "state")
-    assert auto.mean_degree == pytest.approx(8.0)  # BA(16, 8): 64 edges, both directions, over 16 nodes
+    assert (auto.aggregation.mlp, auto.aggregation.linear, auto.aggregation.target) == ("mean", "scaled", "state")
+    assert auto.aggregation.mean_degree == pytest.approx(8.0)  # BA(16, 8): 64 edges, both directions, over 16 nodes
     assert Model.load(tmp_path / "auto.h5").attrs["recipe"] == "auto"
     res = run("train", data, "-o", tmp_path / "paper.h5", "--epochs", 1, "--hidden", 8, "--recipe", "paper")
     paper = Model.load(tmp_path / "paper.h5").spec
-    assert res.exit_code == 0 and (paper.aggregation, paper.linear_aggregate) == ("mean", False)
+    assert res.exit_code == 0 and (paper.aggregation.mlp, paper.linear_path) == ("mean", False)
     res = run("train", data, "-o", tmp_path / "zero.h5", "--epochs", 1, "--hidden", 8, "--zero-messages")
     assert res.exit_code == 0, res.output  # the recipe's linear path needs messages: left out, not refused
-    assert not Model.load(tmp_path / "zero.h5").spec.linear_aggregate
+    assert not Model.load(tmp_path / "zero.h5").spec.linear_path
     res = run("train", data, "-o", tmp_path / "sum.h5", "--epochs", 1, "--hidden", 8, "--aggregate", "sum")
-    assert res.exit_code == 0 and Model.load(tmp_path / "sum.h5").spec.aggregation == "sum"
+    assert res.exit_code == 0 and Model.load(tmp_path / "sum.h5").spec.aggregation.mlp == "sum"
 
 
 def test_the_recipes_batch_sizes_fill_train_and_finetune(tmp_path):
@@ -196,6 +195,6 @@ def test_every_command_takes_every_kind(tmp_path, kind):
 
 
 def test_a_node_model_refuses_a_scene_of_another_size(tmp_path):
-    Model.create(3, 0, 0, 8, 0.05, kind="node", n_nodes=3).save(tmp_path / "n.h5")
+    Model.create(3, 0, message_dim=0, hidden=8, dt=0.05, kind="node", n_nodes=3).save(tmp_path / "n.h5")
     res = run("simulate", tmp_path / "n.h5", "lorenz7", "-o", tmp_path / "s.h5", "-B", 2)
     assert res.exit_code == 2 and "exactly 3 nodes" in res.output and "Traceback" not in res.output

@@ -107,7 +107,7 @@ def test_dense_vjp_matches_finite_differences():
 def test_mlp_vjp_matches_finite_differences():
     rng = np.random.default_rng(2)
     n, din, H, dout = 6, 5, 7, 4
-    spec = FieldSpec(2, 1, 2, H, 0.1)  # din = 2+1+2 = 5, dout = 2+2 = 4
+    spec = FieldSpec(state_dim=2, control_dim=1, message_dim=2, hidden=H, dt=0.1)  # din = 2+1+2 = 5, dout = 2+2 = 4
     theta = random_theta(rng, spec, scale=1.5)
     V = rng.standard_normal((n, din))
     GK = rng.standard_normal((n, dout))

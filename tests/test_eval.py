@@ -115,7 +115,7 @@ def test_cli_eval_text_json_predictions_and_dx_mismatch(tmp_path):
     report = json.loads(res.output)
     assert report["trajectories"] == 5 and len(report["nmse_per_step"]) == 11
     # dx mismatch: exit 2, one clear line, no traceback
-    Model.create(3, 0, 3, 8, 0.1).save(tmp_path / "m3.h5")
+    Model.create(3, 0, message_dim=3, hidden=8, dt=0.1).save(tmp_path / "m3.h5")
     res = runner.invoke(main, ["eval", str(tmp_path / "m3.h5"), str(tmp_path / "d.h5")])
     assert res.exit_code == 2
     assert "state dimensions" in res.output and "Traceback" not in res.output
@@ -136,7 +136,7 @@ def test_cli_eval_times_the_reference_simulator(tmp_path):
 
     traj = generate(replace(load_scene("coupled_pendulum"), trajectories=4, horizon=10), workers=1)
     write_trajectories(tmp_path / "p.h5", traj)
-    Model.create(2, 0, 3, 8, 0.05).save(tmp_path / "m.h5")
+    Model.create(2, 0, message_dim=3, hidden=8, dt=0.05).save(tmp_path / "m.h5")
     res = CliRunner().invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "p.h5"),
                                     "--reference-sample", "3", "--json"])
     assert res.exit_code == 0, res.output

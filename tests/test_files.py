@@ -31,18 +31,18 @@ def test_written_files_get_the_umask_mode_like_open(tmp_path, umask_022):
     plain = tmp_path / "plain.txt"
     open(plain, "w").close()
     write_trajectories(tmp_path / "t.h5", tiny_linear(B=2))
-    Model.create(2, 0, 3, 8).save(tmp_path / "m.h5")
+    Model.create(2, 0, message_dim=3, hidden=8).save(tmp_path / "m.h5")
     assert mode(tmp_path / "t.h5") == mode(tmp_path / "m.h5") == mode(plain) == 0o644
     os.umask(0o077)
-    Model.create(2, 0, 3, 8).save(tmp_path / "private.h5")
+    Model.create(2, 0, message_dim=3, hidden=8).save(tmp_path / "private.h5")
     assert mode(tmp_path / "private.h5") == 0o600
 
 
 def test_replacing_a_file_keeps_its_mode(tmp_path, umask_022):
     path = tmp_path / "m.h5"
-    Model.create(2, 0, 3, 8).save(path)
+    Model.create(2, 0, message_dim=3, hidden=8).save(path)
     os.chmod(path, 0o640)
-    Model.create(2, 0, 3, 8, seed=1).save(path)
+    Model.create(2, 0, message_dim=3, hidden=8, seed=1).save(path)
     assert mode(path) == 0o640
 
 
@@ -112,7 +112,7 @@ def test_train_refuses_to_write_the_model_over_its_data(tmp_path):
 
 def test_eval_refuses_to_write_predictions_over_the_truth_or_the_model(tmp_path):
     data = Path(tiny_file(tmp_path / "d.h5"))
-    Model.create(2, 0, 3, 8, 0.1).save(tmp_path / "m.h5")
+    Model.create(2, 0, message_dim=3, hidden=8, dt=0.1).save(tmp_path / "m.h5")
     truth = read_trajectories(data).x.copy()
     for target in (data, tmp_path / "m.h5"):
         res = run("eval", tmp_path / "m.h5", data, "--predictions", target)
@@ -123,7 +123,7 @@ def test_eval_refuses_to_write_predictions_over_the_truth_or_the_model(tmp_path)
 
 def test_finetune_and_simulate_refuse_to_overwrite_their_model(tmp_path):
     data = Path(tiny_file(tmp_path / "d.h5"))
-    Model.create(2, 0, 3, 8, 0.1).save(tmp_path / "m.h5")
+    Model.create(2, 0, message_dim=3, hidden=8, dt=0.1).save(tmp_path / "m.h5")
     before = (tmp_path / "m.h5").read_bytes()
     res = run("finetune", tmp_path / "m.h5", data, "-o", tmp_path / "m.h5", "--epochs", 1)
     assert res.exit_code == 2 and "destroy the input" in res.output

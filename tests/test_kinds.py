@@ -17,6 +17,7 @@ from mpnode import engine
 from mpnode.base.graph import Graph, block_diagonal
 from mpnode.engine import layouts
 from mpnode.engine import plan as engine_plan
+from mpnode.engine.spec import Aggregation
 
 KIND_SPECS = {
     "mpnode-mean": spec_(),
@@ -74,8 +75,8 @@ def test_aggregations_differ_as_the_format_says():
     for kind, dm in (("mpnode", 3), ("l2s", 0)):
         spec = spec_(kind=kind, message_dim=dm, substeps=1)
         theta, x0, u = problem(spec, graph, 2, seed=7)
-        outs = {agg: engine.forward(dataclasses.replace(spec, aggregation=agg,
-                                                        mean_degree=2.0 if agg == "scaled" else None),
+        outs = {agg: engine.forward(dataclasses.replace(spec, aggregation=Aggregation(
+                                        agg, mean_degree=2.0 if agg == "scaled" else None)),
                                     theta, x0, graph, u, 2) for agg in ("mean", "sum", "scaled")}
         assert not np.allclose(outs["mean"], outs["sum"])
         assert not np.allclose(outs["sum"], outs["scaled"])
@@ -88,7 +89,7 @@ def test_the_linear_path_reads_its_own_aggregate():
     spec = KIND_SPECS["mpnode-mean-linear-scaled"]
     theta, x0, u = problem(spec, graph, 3, seed=7)
     got = engine.forward(spec, theta, x0, graph, u, 3)
-    same = dataclasses.replace(spec, linear_aggregation=None, mean_degree=None)
+    same = dataclasses.replace(spec, aggregation=Aggregation("mean", linear="mean"))
     assert not np.allclose(got, engine.forward(same, theta, x0, graph, u, 3))
     assert engine_plan.plan_for(graph, spec, np.float64, driver="stagewise", ordering="rcm").order is not None
     np.testing.assert_allclose(engine.forward(spec, theta, x0, graph, u, 3, driver="stagewise", ordering="rcm"),

@@ -10,6 +10,7 @@ from engine_helpers import make_graph, rollout_ref
 
 from mpnode import InputError, NumericalError, engine
 from mpnode.base.graph import Graph, block_diagonal
+from mpnode.engine import dims
 from mpnode.model.model import Model, to_time_major
 from mpnode.training import loss_and_grad, losses
 
@@ -306,7 +307,7 @@ def write_raw_v2(path, kind, aggregation=None, **extra):
 ])
 def test_version_2_files_of_every_kind_load_and_round_trip(tmp_path, kind, aggregation, extra, want):
     m = Model.load(write_raw_v2(tmp_path / "m.h5", kind, aggregation, **extra))
-    assert m.kind == kind and (m.spec.aggregation, m.spec.mean_degree) == want
+    assert m.kind == kind and (m.spec.aggregation.mlp, m.spec.aggregation.mean_degree) == want
     m.save(tmp_path / "again.h5")
     back = Model.load(tmp_path / "again.h5")
     assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
@@ -341,9 +342,9 @@ def test_linear_aggregate_round_trips_and_files_without_it_load_as_off(tmp_path)
     """The switch and W_agg come back exactly; a file without the attribute (every file
     before it) is a model without the path, and is written back without it."""
     on = Model.load(write_raw_v2(tmp_path / "on.h5", "mpnode", "scaled", mean_degree=2.0, linear_aggregate=1))
-    assert on.spec.linear_aggregate and on.params["W_agg"].shape == (DM, DX + DM) and np.any(on.params["W_agg"])
+    assert on.spec.linear_path and on.params["W_agg"].shape == (DM, DX + DM) and np.any(on.params["W_agg"])
     off = Model.load(write_raw_v2(tmp_path / "off.h5", "mpnode"))
-    assert not off.spec.linear_aggregate and "W_agg" not in off.params
+    assert not off.spec.linear_path and "W_agg" not in off.params
     for m, name in ((on, "on"), (off, "off")):
         m.save(tmp_path / f"{name}2.h5")
         back = Model.load(tmp_path / f"{name}2.h5")
@@ -358,7 +359,8 @@ def test_the_linear_paths_own_aggregation_round_trips(tmp_path):
     path = write_raw_v2(tmp_path / "m.h5", "mpnode", "mean", mean_degree=2.0, linear_aggregate=1,
                         linear_aggregation="scaled")
     m = Model.load(path)
-    assert (m.spec.aggregation, m.spec.linear_aggregation, m.spec.mean_degree) == ("mean", "scaled", 2.0)
+    agg = m.spec.aggregation
+    assert (agg.mlp, agg.linear, agg.mean_degree) == ("mean", "scaled", 2.0)
     m.save(tmp_path / "back.h5")
     back = Model.load(tmp_path / "back.h5")
     assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
@@ -369,7 +371,7 @@ def test_a_linear_path_to_the_state_alone_round_trips(tmp_path):
     path = write_raw_v2(tmp_path / "m.h5", "mpnode", "mean", mean_degree=2.0, linear_aggregate=1,
                         linear_aggregation="scaled", linear_target="state")
     m = Model.load(path)
-    assert m.spec.linear_target == "state" and m.params["W_agg"].shape == (DM, DX)
+    assert m.spec.aggregation.target == "state" and m.params["W_agg"].shape == (DM, DX)
     m.save(tmp_path / "back.h5")
     back = Model.load(tmp_path / "back.h5")
     assert back.spec == m.spec and np.array_equal(back.theta, m.theta)
@@ -379,7 +381,7 @@ def test_a_linear_path_to_the_state_alone_round_trips(tmp_path):
 
 def test_create_takes_the_linear_aggregation_as_the_switch_and_refuses_unknown_ones():
     m = Model.create(DX, message_dim=DM, linear_aggregation="scaled", mean_degree=3.0)
-    assert m.spec.linear_aggregate and m.spec.dims[-1] == 1 | 2 and "W_agg" in m.params
+    assert m.spec.linear_path and m.spec.dims[dims.LINEAR] == dims.LINEAR_ON | dims.LINEAR_OWN and "W_agg" in m.params
     with pytest.raises(InputError, match="linear_aggregation"):
         Model.create(DX, message_dim=DM, linear_aggregation="max")
 

@@ -26,14 +26,13 @@ def rollout_from_file(path, traj):
         names = L2S_ARRAYS if kind == "l2s" else MLP_ARRAYS + (("W_agg",) if a.get("linear_aggregate") else ())
         theta = np.concatenate([f[f"params/{n}"][()].astype(np.float64).ravel() for n in names])
         x_mean, x_std = f["norm/x_mean"][()], f["norm/x_std"][()]
+    aggregation = SimpleNamespace(mlp=a.get("aggregation", "mean"), mean_degree=a.get("mean_degree"),
+                                  own_linear=a.get("linear_aggregation"), target=a.get("linear_target", "all"))
     spec = SimpleNamespace(kind=kind, state_dim=int(a["state_dim"]), control_dim=int(a["control_dim"]),
                            message_dim=int(a["message_dim"]), hidden=int(a["hidden"]), dt=float(a["dt"]),
                            substeps=int(a["substeps"]), zero_messages=bool(a["zero_messages"]),
-                           self_messages=bool(a["self_messages"]), aggregation=a.get("aggregation", "mean"),
-                           mean_degree=a.get("mean_degree"), n_nodes=a.get("n_nodes"),
-                           linear_aggregate=bool(a.get("linear_aggregate", 0)),
-                           linear_aggregation=a.get("linear_aggregation"),
-                           linear_target=a.get("linear_target", "all"))
+                           self_messages=bool(a["self_messages"]), aggregation=aggregation, n_nodes=a.get("n_nodes"),
+                           linear_path=bool(a.get("linear_aggregate", 0)))
     B, T1, N, dx = traj.x.shape
     out = np.empty((B, T1, N, dx))
     for b in range(B):
@@ -70,7 +69,7 @@ def test_the_reference_rollout_sees_graph_structure(tmp_path):
     from mpnode.model import Model
 
     for kind in ("mpnode", "l2s"):
-        m = Model.create(2, 0, 3, 8, 0.1, kind=kind, seed=1, dtype=np.float64)
+        m = Model.create(2, 0, message_dim=3, hidden=8, dt=0.1, kind=kind, seed=1, dtype=np.float64)
         m.params["b1" if kind == "mpnode" else "b_msg"][:] = 0.5
         m.save(tmp_path / f"{kind}.h5")
         traj = read_trajectories(tiny_file(tmp_path / "d.h5", B=2))

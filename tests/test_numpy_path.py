@@ -10,10 +10,9 @@ import textwrap
 
 import numpy as np
 import pytest
-from engine_helpers import make_graph, random_theta
+from engine_helpers import make_graph, random_theta, spec_
 
 from mpnode import Model
-from mpnode.engine import FieldSpec
 
 N, DX, DU, T = 9, 2, 2, 8
 
@@ -34,7 +33,7 @@ SPECS = {
 
 def make_model(name, dtype, seed=0):
     rng = np.random.default_rng(seed)
-    spec = FieldSpec(state_dim=DX, control_dim=DU, hidden=8, dt=0.1, substeps=2, **{"message_dim": 0, **SPECS[name]})
+    spec = spec_(state_dim=DX, control_dim=DU, hidden=8, dt=0.1, substeps=2, **{"message_dim": 0, **SPECS[name]})
     return Model(random_theta(rng, spec, dtype=dtype), spec, x_mean=rng.standard_normal(DX),
                  x_std=1 + rng.random(DX), u_mean=rng.standard_normal(DU), u_std=1 + rng.random(DU))
 
@@ -127,7 +126,7 @@ def test_without_numba_the_cli_evaluates(tmp_path):
     from test_train import tiny_file
 
     data = tiny_file(tmp_path / "d.h5", B=3)
-    Model.create(2, 0, 3, 8, 0.1, dtype=np.float32).save(tmp_path / "m.h5")
+    Model.create(2, 0, message_dim=3, hidden=8, dt=0.1, dtype=np.float32).save(tmp_path / "m.h5")
     res = run_python(BLOCK_NUMBA + """
 from cli.main import main
 main(["eval", sys.argv[1], sys.argv[2]])

@@ -56,7 +56,7 @@ def test_eval_plot(tmp_path, model_and_data):
 
 def test_simulate_plot(tmp_path):
     pytest.importorskip("matplotlib")
-    Model.create(2, 0, 3, 8, 0.05).save(tmp_path / "m.h5")
+    Model.create(2, 0, message_dim=3, hidden=8, dt=0.05).save(tmp_path / "m.h5")
     res = run("simulate", tmp_path / "m.h5", "coupled_pendulum", "-o", tmp_path / "s.h5", "-B", 3, "-T", 20,
               "--plot", tmp_path / "s.png")
     assert res.exit_code == 0, res.output

@@ -4,11 +4,10 @@ the messages it shows are the integrated ones; its errors say what to fix."""
 import networkx as nx
 import numpy as np
 import pytest
-from engine_helpers import make_graph, random_theta, rollout_ref
+from engine_helpers import make_graph, random_theta, rollout_ref, spec_
 
 from mpnode import InputError, Model, Simulator
 from mpnode.base.graph import Graph
-from mpnode.engine import FieldSpec
 from mpnode.engine import numpy_path as numpy_engine
 
 N, DX, DU, T, B = 9, 2, 2, 6, 3
@@ -24,7 +23,7 @@ KINDS = {
 def make_model(name, du, dtype, seed=0):
     """Random weights with non-zero biases, and normalisation constants that are not 0/1."""
     rng = np.random.default_rng(seed)
-    spec = FieldSpec(state_dim=DX, control_dim=du, hidden=8, dt=0.1, substeps=2, **{"message_dim": 0, **KINDS[name]})
+    spec = spec_(state_dim=DX, control_dim=du, hidden=8, dt=0.1, substeps=2, **{"message_dim": 0, **KINDS[name]})
     return Model(random_theta(rng, spec, dtype=dtype), spec, x_mean=rng.standard_normal(DX),
                  x_std=1 + rng.random(DX), u_mean=rng.standard_normal(du), u_std=1 + rng.random(du))
 

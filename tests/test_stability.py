@@ -197,11 +197,12 @@ def test_window_starts_cover_the_horizon_with_consecutive_windows():
 
 def test_window_part_cuts_every_trajectory_into_windows_from_true_states():
     from mpnode import training as train
-    from mpnode.training import batches
 
     traj = tiny_linear(B=6, T=10)
     m = fresh()
-    tr, _, _ = batches.prepare(m, [traj], train.TrainConfig(val_split=0.0, noise=0.0))
+    from test_train import prepared
+
+    tr, _, _ = prepared(m, [traj], train.TrainConfig(val_split=0.0, noise=0.0))
     part = tr[0]
     w = part.windows(4)  # starts 0, 4, 6
     assert w.x.shape == (5, 6 * 3, 2, 2) and w.n == 18 and w.gi.shape == (18,)

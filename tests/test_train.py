@@ -43,8 +43,15 @@ def tiny_file(path, **kw):
     return str(path)
 
 
+def prepared(model, datasets, config):
+    """(train parts, val parts, split) of ``datasets`` under ``config``, ``model``'s normalisation
+    set as training sets it."""
+    data = batches.TrainingData(datasets, config)
+    return (*data.parts(model, config.norm), data.split)
+
+
 def fresh(seed=0, hidden=16):
-    return Model.create(2, 0, 3, hidden, 0.1, seed=seed)
+    return Model.create(2, 0, message_dim=3, hidden=hidden, dt=0.1, seed=seed)
 
 
 FAST = dict(batch_size=32, lr=1e-2)
@@ -67,7 +74,7 @@ def test_validation_loss_is_the_training_loss_without_noise():
     m = fresh()
     traj = tiny_linear()
     cfg = train.TrainConfig(noise=0.0)
-    tr, va, _ = batches.prepare(m, [traj], cfg)
+    tr, va, _ = prepared(m, [traj], cfg)
     x, u, g = tr[0].batch(np.arange(tr[0].n))
     for loss in ("huber", "mse"):
         ref, _, _ = losses.value_and_grad(m.spec, m.theta, x, g, u, loss)
@@ -80,7 +87,7 @@ def test_normalisation_is_fitted_on_the_training_split_only():
     traj.x[:, :, :, 0] += np.arange(20)[:, None, None]  # every trajectory has its own level
     m = fresh()
     cfg = train.TrainConfig(val_split=0.3, seed=3)
-    _, _, split = batches.prepare(m, [traj], cfg)
+    _, _, split = prepared(m, [traj], cfg)
     tr, va = split[0]
     assert len(va) == 6 and len(tr) == 14 and not set(tr) & set(va)
     want = traj.x[tr].reshape(-1, 2)
@@ -105,7 +112,7 @@ def test_finetune_starts_from_exactly_the_given_weights(tmp_path):
     r = train.fit(src, [tiny_linear()], train.TrainConfig(epochs=2, norm="keep", **FAST))
     assert np.array_equal(src.theta, before)
     m0 = src.copy()
-    _, va, _ = batches.prepare(m0, [tiny_linear()], train.TrainConfig(norm="keep"))
+    _, va, _ = prepared(m0, [tiny_linear()], train.TrainConfig(norm="keep"))
     assert r.history[0]["val_loss"] == pytest.approx(train_loop.Validator(va, "huber")(m0.spec, m0.theta)[0], rel=1e-12)
 
 
@@ -118,7 +125,7 @@ def test_refit_finetune_starts_from_the_same_predictions_on_the_new_constants(tm
     out = tmp_path / "ft.h5"
     train.fit(src, [traj], train.TrainConfig(epochs=0, norm="refit"), out)
     saved = Model.load(out)
-    fitted = batches.prepare(fresh(seed=5), [traj], train.TrainConfig(norm="fit"))[2]
+    fitted = prepared(fresh(seed=5), [traj], train.TrainConfig(norm="fit"))[2]
     want_mean, want_std = batches.fit_normalization([np.asarray(traj.x)[fitted[0][0]]])
     np.testing.assert_allclose(saved.x_std, want_std)
     np.testing.assert_allclose(saved.x_mean, want_mean)
@@ -274,7 +281,7 @@ def test_training_log_is_valid_json_lines(tmp_path):
 def test_epoch_batches_cover_every_trajectory_once_and_mix_files():
     m = fresh()
     a, b = tiny_linear(B=30), tiny_linear(B=12, seed=1)
-    tr, _, _ = batches.prepare(m, [a, b], train.TrainConfig(val_split=0.25))
+    tr, _, _ = prepared(m, [a, b], train.TrainConfig(val_split=0.25))
     epoch = batches.epoch_batches(tr, 8, seed=0, epoch=1)
     for p in (0, 1):
         got = np.sort(np.concatenate([s for q, s in epoch if q == p]))
@@ -302,7 +309,7 @@ def test_incompatible_files_are_refused():
     with pytest.raises(InputError, match="dt"):
         train.fit(fresh(), [a, b], train.TrainConfig(epochs=1), sources=["a.h5", "b.h5"])
     with pytest.raises(InputError, match="state dimensions"):
-        train.fit(Model.create(3, 0, 3, 8, 0.1), [a], train.TrainConfig(epochs=1))
+        train.fit(Model.create(3, 0, message_dim=3, hidden=8, dt=0.1), [a], train.TrainConfig(epochs=1))
 
 
 # ---------------------------------------------------------------------------
@@ -356,15 +363,15 @@ def multi_graph_file(B=40):
 def test_val_graphs_holds_out_whole_graphs():
     traj = multi_graph_file()
     m = fresh()
-    _, _, split = batches.prepare(m, [traj], train.TrainConfig(val_graphs=1, seed=5))
+    _, _, split = prepared(m, [traj], train.TrainConfig(val_graphs=1, seed=5))
     tr, va = split[0]
     held = set(traj.graph_index[va])
     assert len(held) == 1 and not held & set(traj.graph_index[tr])
     assert len(tr) + len(va) == traj.n_trajectories
     # the same seed holds out the same graph; a file with too few graphs keeps the random split
-    assert np.array_equal(batches.prepare(fresh(), [traj], train.TrainConfig(val_graphs=1, seed=5))[2][0][1], va)
+    assert np.array_equal(prepared(fresh(), [traj], train.TrainConfig(val_graphs=1, seed=5))[2][0][1], va)
     one = tiny_linear(B=20)
-    _, _, split = batches.prepare(fresh(), [one], train.TrainConfig(val_graphs=1, val_split=0.25))
+    _, _, split = prepared(fresh(), [one], train.TrainConfig(val_graphs=1, val_split=0.25))
     assert len(split[0][1]) == 5
 
 
@@ -377,15 +384,16 @@ def test_the_time_limit_counts_the_whole_run_across_resumes(tmp_path):
 
 
 def test_the_scaled_aggregation_divides_by_the_training_graphs_mean_in_degree():
+    from mpnode.model.config import ModelConfig
     from mpnode.runs import run as runs
 
     traj = multi_graph_file()  # graphs with 2, 1, 1, 0 directed edges on 2 nodes, used in turn
-    assert runs.mean_in_degree([traj], False) == pytest.approx((2 + 1 + 1 + 0) / 4 / 2)
-    assert runs.mean_in_degree([traj], True) == pytest.approx((2 + 1 + 1 + 0) / 4 / 2 + 1)
-    config = train.TrainConfig(val_graphs=1, seed=5)
-    split = batches.make_split([traj], config)
-    held = set(traj.graph_index[split[0][1]])
+    everything = batches.TrainingData([traj], train.TrainConfig(val_split=0.0))
+    assert everything.mean_in_degree(False) == pytest.approx((2 + 1 + 1 + 0) / 4 / 2)
+    assert everything.mean_in_degree(True) == pytest.approx((2 + 1 + 1 + 0) / 4 / 2 + 1)
+    data = batches.TrainingData([traj], train.TrainConfig(val_graphs=1, seed=5))
+    held = set(traj.graph_index[data.split[0][1]])
     edges = [g.n_edges for i, g in enumerate(traj.graphs) if i not in held]
-    assert runs.mean_in_degree([traj], False, split) == pytest.approx(sum(edges) / len(edges) / 2)
-    m = runs.new_model([traj], aggregation="scaled", split=split)
-    assert m.spec.mean_degree == pytest.approx(sum(edges) / len(edges) / 2)
+    assert data.mean_in_degree(False) == pytest.approx(sum(edges) / len(edges) / 2)
+    m = runs.new_model(data, ModelConfig(aggregation="scaled"))
+    assert m.spec.aggregation.mean_degree == pytest.approx(sum(edges) / len(edges) / 2)

@@ -121,8 +121,8 @@ def analyse(ctx):
     for name, what, _ in VARIANTS + HOT_VARIANTS:
         res, model = ctx.result(name), ctx.model(name)
         kind = res["spec"]["kind"]
-        numbers[name] = {"run": run_line(res), "epochs": res["epochs"], "aggregation": model.spec.aggregation,
-                         "linear_aggregation": model.spec.linear_aggregation}
+        numbers[name] = {"run": run_line(res), "epochs": res["epochs"], "aggregation": model.spec.aggregation.mlp,
+                         "linear_aggregation": model.spec.aggregation.own_linear}
         first = True
         for label, dspec, key in (hot_test_sets(ctx.mode) if name.endswith("_hot") else sets):
             traj = ctx.data(dspec)

@@ -80,8 +80,8 @@ def analyse(ctx):
         res, model = ctx.result(name), ctx.model(name)
         ev3, ev6 = (evaluate_nmse(model, ctx.data(d(ctx.mode))) for d in (q3_test, q6_test))
         numbers[name] = {"quad3_nmse": ev3.nmse, "quad6_zero_shot_nmse": ev6.nmse, "quad6_blown_up": ev6.n_bad,
-                         "epochs": res["epochs"], "aggregation": model.spec.aggregation, "run": run_line(res)}
-        rows3.append([name, model.spec.kind, model.spec.message_dim, model.spec.aggregation, res["epochs"],
+                         "epochs": res["epochs"], "aggregation": model.spec.aggregation.mlp, "run": run_line(res)}
+        rows3.append([name, model.spec.kind, model.spec.message_dim, model.spec.aggregation.mlp, res["epochs"],
                       ev3.nmse, ev6.nmse])
     for name, label, _ in target_runs(ctx.mode):
         res = ctx.result(name)

@@ -17,8 +17,8 @@ def param_shapes(spec):
     n = spec.n_nodes if spec.kind == "node" else 1  # a plain NODE sees all N nodes at once
     din, dout = n * (dx + du) + dm, n * dx + dm
     shapes = {"W1": (din, H), "b1": (H,), "W2": (H, H), "b2": (H,), "W3": (H, dout), "b3": (dout,)}
-    if spec.kind == "mpnode" and spec.linear_aggregate:  # last, so the MLP's layout is the same either way
-        shapes["W_agg"] = (dm, dx if spec.linear_target == "state" else dout)
+    if spec.linear_path:  # last, so the MLP's layout is the same either way
+        shapes["W_agg"] = (dm, dx if spec.aggregation.target == "state" else dout)
     return shapes
 
 

@@ -15,8 +15,7 @@ evaluation, so small graphs pay NumPy's per-call overhead (benchmarks/bench_simu
 import numpy as np
 
 from . import layouts
-from .plan import aggregation_weights
-from .spec import checked_controls
+from .spec import checked_controls, rule_weights
 
 
 def mlp(p, V):
@@ -26,15 +25,15 @@ def mlp(p, V):
     return h2 @ p["W3"] + p["b3"]
 
 
-def aggregator(spec, graph, dtype, aggregation=None):
+def aggregator(spec, graph, dtype, rule=None):
     """The neighbour aggregation on ``graph`` as a function src (M, w) -> (M, w).
 
     Row i gets weight_i * (the sum of src over the nodes i hears [plus i itself with
     self_messages]): weight 1/count (mean), 1 (sum) or 1/mean_degree (scaled), and 0
-    for a node that hears nobody.  aggregation: another than the spec's (the linear path's own).
+    for a node that hears nobody.  rule: another than the spec's (the linear path's own).
     """
-    weight = aggregation_weights(graph, spec.self_messages, aggregation or spec.aggregation, spec.mean_degree,
-                                 dtype)[:, None]
+    agg = spec.aggregation
+    weight = rule_weights(graph, spec.self_messages, rule or agg.mlp, agg.mean_degree, dtype)[:, None]
     rows = np.flatnonzero(graph.degrees() > 0)
     starts = graph.indptr[:-1][rows]  # the rows that hear someone, each its own segment of indices
     indices = graph.indices
@@ -75,16 +74,14 @@ def make_field(spec, theta, graph):
             return (h1 + h0) @ p["W_out"] + p["b_out"]
 
         return l2s_field
-    # The linear path's own aggregate of the messages, read from the attributes alone (this path
-    # must reproduce a model from its file, without mpnode's FieldSpec).
-    own = spec.linear_aggregation if spec.linear_aggregate else None
+    own = spec.aggregation.own_linear  # the linear path's own rule, when not the MLP's
     linear = None if own is None else aggregator(spec, graph, theta.dtype, own)
 
     def mpnode_field(z, u):
         x, m = z[:, :dx], z[:, dx:]
         heard = np.zeros_like(m) if spec.zero_messages else aggregate(m)
         k = mlp(p, np.concatenate([x, u, heard], axis=1))
-        if spec.linear_aggregate:  # the path linear in the aggregate, around the MLP
+        if spec.linear_path:  # the path linear in the aggregate, around the MLP
             ncol = p["W_agg"].shape[1]  # dx + dm, or dx for linear_target "state"
             k[:, :ncol] += (heard if linear is None else linear(m)) @ p["W_agg"]
         if spec.zero_messages:

@@ -41,26 +41,21 @@ class Plan:
         graph whose 0/1 adjacency (self-loop included for self_messages) starts at
         dense_A[dense_off[b]] (row-major); dense_n[b] = 0 means CSR
     dense_A, dense_AT : flat arrays of those matrices and their transposes
-    weight : ndarray (M,) -- each node's factor on the sum of what its row sends (aggregation);
-        (2M,) when the linear path has its own aggregation: then weight[M + i] is node i's
-        factor from the MLP's aggregate to the linear path's (`linear_scale`), so that every
-        kernel that reads weight[i] stays as it is
+    weight : ndarray -- `Aggregation.weights`: (M,) each node's factor on the sum of its row,
+        then M more when the linear path has its own rule
     order : ndarray (M,) or None -- the kernels' node k is the user's node order[k] (a
         locality order for one large graph, see `locality_order`); None: the user's order
     csr : Graph -- the graph as the kernels read it (renumbered by ``order``)
     transposed : Graph -- the CSR transpose of ``csr`` (computed on first use, for the adjoint)
     """
 
-    def __init__(self, graph, n_threads, self_messages, dtype, aggregation, mean_degree, driver="auto",
-                 blocks_per_thread=2, tile=128, ordering="auto", linear_aggregation=None):
+    def __init__(self, graph, n_threads, self_messages, dtype, aggregation, driver="auto",
+                 blocks_per_thread=2, tile=128, ordering="auto"):
         self.blocks = None
         self.order = None
         self.csr = Graph(graph.indptr, graph.indices)  # not the graph: the cache holds it weakly
         self._transposed = None
-        self.weight = aggregation_weights(graph, self_messages, aggregation, mean_degree, dtype)
-        if linear_aggregation is not None:
-            self.weight = np.concatenate([self.weight, linear_scale(graph, self_messages, aggregation,
-                                                                    linear_aggregation, mean_degree, dtype)])
+        self.weight = aggregation.weights(graph, self_messages, dtype)
         m = graph.n_nodes
         parts = graph.parts or (graph,)
         sizes = np.array([p.n_nodes for p in parts], dtype=np.int64)
@@ -210,35 +205,11 @@ def plan_for(graph, spec, dtype, driver="auto", ordering="auto"):
         raise ValueError(f"driver must be one of {DRIVERS}, not {driver!r}")
     if ordering not in ORDERINGS:
         raise ValueError(f"ordering must be one of {ORDERINGS}, not {ordering!r}")
-    key = (n_threads(), bool(spec.self_messages), np.dtype(dtype).str, driver, spec.aggregation, spec.mean_degree,
-           ordering, spec.own_linear_aggregation)
+    key = (n_threads(), bool(spec.self_messages), np.dtype(dtype).str, driver, spec.aggregation, ordering)
     per_graph = _plans.setdefault(graph, {})
     if key not in per_graph:
-        per_graph[key] = Plan(graph, key[0], spec.self_messages, dtype, spec.aggregation, spec.mean_degree, driver,
-                              ordering=ordering, linear_aggregation=spec.own_linear_aggregation)
+        per_graph[key] = Plan(graph, key[0], spec.self_messages, dtype, spec.aggregation, driver, ordering=ordering)
     return per_graph[key]
-
-
-def aggregation_weights(graph, self_messages, aggregation, mean_degree, dtype):
-    """Each node's factor on the sum over its row [and itself]: mean 1 / that count, sum 1,
-    scaled 1 / mean_degree; 0 for a node that hears nobody (its aggregate is 0)."""
-    d = graph.degrees() + (1 if self_messages else 0)
-    out = np.zeros(graph.n_nodes, dtype=dtype)
-    if aggregation == "mean":
-        np.divide(1.0, d, out=out, where=d > 0, casting="unsafe")
-    else:
-        out[d > 0] = 1.0 if aggregation == "sum" else 1.0 / mean_degree
-    return out
-
-
-def linear_scale(graph, self_messages, aggregation, linear_aggregation, mean_degree, dtype):
-    """Each node's factor from the MLP's aggregate to the linear path's: the ratio of their
-    weights (e.g. mean -> scaled: degree / mean_degree); 0 for a node that hears nobody."""
-    w = aggregation_weights(graph, self_messages, aggregation, mean_degree, np.float64)
-    wl = aggregation_weights(graph, self_messages, linear_aggregation, mean_degree, np.float64)
-    out = np.zeros(graph.n_nodes, dtype=dtype)
-    np.divide(wl, w, out=out, where=w > 0, casting="unsafe")
-    return out
 
 
 def transpose(graph):

@@ -19,13 +19,18 @@ import numpy as np
 HORIZON_THRESHOLDS = (0.1, 1.0)
 
 
-def normalised_sq_error(pred, truth, spread=None):
-    """(pred - truth)^2 / the per-dimension variance of ``spread`` (default: ``truth``), float64,
-    shape of ``pred`` (non-finite values become inf); a dimension that does not vary counts
-    with variance 1."""
-    d = truth.shape[-1]
-    var = np.asarray(truth if spread is None else spread, dtype=np.float64).reshape(-1, d).var(axis=0)
-    var = np.where(var > 0, var, 1.0)
+def variance(x):
+    """The per-dimension variance of ``x`` (..., d) over every other axis, float64; a dimension
+    that does not vary counts with variance 1."""
+    x = np.asarray(x, dtype=np.float64)
+    var = x.reshape(-1, x.shape[-1]).var(axis=0)
+    return np.where(var > 0, var, 1.0)
+
+
+def normalised_sq_error(pred, truth, spread=None, var=None):
+    """(pred - truth)^2 / the per-dimension variance of ``spread`` (default: ``truth``; or the
+    ``var`` given), float64, shape of ``pred`` (non-finite values become inf)."""
+    var = variance(truth if spread is None else spread) if var is None else var
     with np.errstate(all="ignore"):
         err = (np.asarray(pred, dtype=np.float64) - truth) ** 2 / var
     err[~np.isfinite(err)] = np.inf

@@ -6,11 +6,11 @@ attributes) and the writer takes the same; `mpnode.model.Model` makes a model of
 """
 import numpy as np
 
-from mpnode import engine
 from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
 from mpnode.base.h5 import H5_DAMAGE, plain_attr
 from mpnode.engine import layouts
+from mpnode.engine.spec import AGGREGATIONS, KINDS, LINEAR_TARGETS, FieldSpec, default_aggregation
 
 FORMAT = "mpnode.model"
 FORMAT_VERSION = 2
@@ -18,18 +18,36 @@ FORMAT_VERSION = 2
 #: ignores attributes it does not know) refuses it instead of dropping the path
 LINEAR_PATH_VERSION = 3
 
-_INT_ATTRS = ("state_dim", "control_dim", "message_dim", "hidden", "substeps", "zero_messages", "self_messages")
-_SPEC_ATTRS = set(_INT_ATTRS) | {"format", "format_version", "activation", "dt", "integrator", "kind",
-                                 "aggregation", "mean_degree", "n_nodes", "linear_aggregate",
-                                 "linear_aggregation", "linear_target"}
-
-
 def _is_int(v):
     return isinstance(v, int) and not isinstance(v, bool)
 
 
 def _is_number(v):
     return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+
+
+def _flag(v):
+    return isinstance(v, (int, float)) and v in (0, 1)
+
+
+#: the spec's attributes: how each must look (the rules between them are FieldSpec's)
+_TYPES = {
+    "state_dim": (lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
+    "control_dim": (lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+    "message_dim": (lambda v: _is_int(v) and v >= 0, "an integer >= 0"),
+    "hidden": (lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
+    "substeps": (lambda v: _is_int(v) and v >= 1, "an integer >= 1"),
+    "dt": (lambda v: _is_number(v) and v > 0, "a number > 0"),
+    "zero_messages": (_flag, "0 or 1"),
+    "self_messages": (_flag, "0 or 1"),
+    "n_nodes": (lambda v: _is_int(v) and v >= 1, "an integer >= 1 (the system's node count)"),
+    "mean_degree": (lambda v: _is_number(v) and v > 0, "a number > 0 (the training graphs' mean in-degree)"),
+    "linear_aggregate": (_flag, "0 or 1"),
+    "linear_aggregation": (lambda v: isinstance(v, str) and v in AGGREGATIONS, " or ".join(AGGREGATIONS)),
+    "linear_target": (lambda v: isinstance(v, str) and v in LINEAR_TARGETS,
+                      " or ".join(LINEAR_TARGETS) + " (what the linear aggregate path adds to)"),
+}
+_SPEC_ATTRS = set(_TYPES) | {"format", "format_version", "activation", "integrator", "kind", "aggregation"}
 
 
 class _Attrs:
@@ -50,75 +68,41 @@ class _Attrs:
 
     def spec(self):
         """The FieldSpec the attributes describe (every rule of the format's root attributes)."""
-        need = self.need
-        need("format", lambda v: isinstance(v, str) and v == FORMAT, f"'{FORMAT}'")
-        version = need("format_version", lambda v: _is_int(v) and v in (1, FORMAT_VERSION, LINEAR_PATH_VERSION),
-                       f"1, {FORMAT_VERSION} or {LINEAR_PATH_VERSION} (the versions this reader knows)")
-        need("activation", lambda v: isinstance(v, str) and v == "tanh", "'tanh'")
-        need("integrator", lambda v: isinstance(v, str) and v == "rk4", "'rk4' (classic 4-stage)")
-        known = engine.KINDS if version > 1 else ("mpnode",)
-        kind = need("kind", lambda v: isinstance(v, str) and v in known,
-                    " or ".join(known) + f" (the kinds format version {version} knows)", default="mpnode")
-        aggs = engine.AGGREGATIONS if version > 1 else ("mean",)
-        aggregation = need("aggregation", lambda v: isinstance(v, str) and v in aggs,
-                           " or ".join(aggs) + " (the aggregations this version knows)",
-                           default=engine.default_aggregation(kind))
-        linear = self.linear_aggregation(aggs)
-        mean_degree = None
-        if "scaled" in (aggregation, linear):
-            mean_degree = float(need("mean_degree", lambda v: _is_number(v) and v > 0,
-                                     "a number > 0 (the training graphs' mean in-degree)"))
-        n_nodes = None
-        if kind == "node":
-            n_nodes = need("n_nodes", lambda v: _is_int(v) and v >= 1, "an integer >= 1 (the system's node count)")
-        dx = need("state_dim", lambda v: _is_int(v) and v >= 1, "an integer >= 1")
-        du = need("control_dim", lambda v: _is_int(v) and v >= 0, "an integer >= 0")
-        if kind == "mpnode":
-            dm = need("message_dim", lambda v: _is_int(v) and v >= 0, "an integer >= 0")
-        else:
-            dm = need("message_dim", lambda v: _is_int(v) and v == 0, f"0 (a {kind} model has no messages)", default=0)
-        hidden = need("hidden", lambda v: _is_int(v) and v >= 1, "an integer >= 1")
-        substeps = need("substeps", lambda v: _is_int(v) and v >= 1, "an integer >= 1")
-        flag = lambda v: isinstance(v, (int, float)) and v in (0, 1)  # noqa: E731
-        zero = need("zero_messages", flag, "0 or 1", default=0 if kind != "mpnode" else None)
-        if kind != "mpnode" and zero:
-            raise InputError(self.path, "zero_messages", "is 1", f"0 (a {kind} model has no messages)")
-        self_msg = need("self_messages", flag, "0 or 1", default=0 if kind == "node" else None)
-        dt = need("dt", lambda v: _is_number(v) and v > 0, "a number > 0")
-        on = self.linear_aggregate(kind, dm, zero)
-        if (version == LINEAR_PATH_VERSION) != on:
-            raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(on)}",
+        version = self.version()
+        kinds, aggs = (KINDS, AGGREGATIONS) if version > 1 else (("mpnode",), ("mean",))
+        kind = self.need("kind", lambda v: isinstance(v, str) and v in kinds,
+                         " or ".join(kinds) + f" (the kinds format version {version} knows)", default="mpnode")
+        values = {"kind": kind, "aggregation": self.need(
+            "aggregation", lambda v: isinstance(v, str) and v in aggs,
+            " or ".join(aggs) + " (the aggregations this version knows)", default=default_aggregation(kind))}
+        required = {"state_dim", "control_dim", "hidden", "substeps", "dt"}
+        required |= {"message_dim", "zero_messages"} if kind == "mpnode" else set()
+        required |= {"self_messages"} if kind != "node" else set()
+        for name, (check, expected) in _TYPES.items():
+            if name in self.a or name in required:
+                values[name] = self.need(name, check, expected)
+        for name in ("linear_aggregation", "linear_target"):
+            if name in values and not values.get("linear_aggregate"):
+                raise InputError(self.path, name, f"is {values[name]!r} without linear_aggregate 1",
+                                 f"no {name}, or linear_aggregate 1 (the linear aggregate path it describes)")
+        try:
+            spec = FieldSpec.from_attrs(values)
+        except InputError as e:
+            raise InputError(self.path, e.field, e.problem, e.expected) from None
+        if (version == LINEAR_PATH_VERSION) != spec.linear_path:
+            raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(spec.linear_path)}",
                              f"{LINEAR_PATH_VERSION} exactly when the model has the linear aggregate path "
                              f"(linear_aggregate 1), {FORMAT_VERSION} otherwise")
-        if linear is not None and not on:
-            raise InputError(self.path, "linear_aggregation", f"is {linear!r} without linear_aggregate 1",
-                             "no linear_aggregation, or linear_aggregate 1 (the path it feeds)")
-        target = self.need("linear_target", lambda v: isinstance(v, str) and v in engine.LINEAR_TARGETS,
-                           " or ".join(engine.LINEAR_TARGETS) + " (what the linear aggregate path adds to)",
-                           default="all")
-        if target != "all" and not on:
-            raise InputError(self.path, "linear_target", f"is {target!r} without linear_aggregate 1",
-                             "no linear_target, or linear_aggregate 1 (the path it says where to add)")
-        return engine.FieldSpec(dx, du, dm, hidden, float(dt), substeps, bool(zero), bool(self_msg), kind,
-                                aggregation, mean_degree, n_nodes, on, linear, target)
+        return spec
 
-    def linear_aggregation(self, aggs):
-        """The linear path's own aggregate, or None when absent (the path reads the MLP's)."""
-        if "linear_aggregation" not in self.a:
-            return None
-        return self.need("linear_aggregation", lambda v: isinstance(v, str) and v in aggs,
-                         " or ".join(aggs) + " (the aggregations this version knows)")
-
-    def linear_aggregate(self, kind, dm, zero):
-        """The linear aggregate path switch: 0 when absent (files before it, and every model
-        without it); 1 only for an mpnode model that has messages to aggregate."""
-        flag = lambda v: isinstance(v, (int, float)) and v in (0, 1)  # noqa: E731
-        on = bool(self.need("linear_aggregate", flag, "0 or 1", default=0))
-        if on and (kind != "mpnode" or not dm or zero):
-            raise InputError(self.path, "linear_aggregate", "is 1",
-                             "0 (the linear aggregate path needs an mpnode model with messages: message_dim > 0, "
-                             "zero_messages 0)")
-        return on
+    def version(self):
+        """The format version, after the attributes every version has."""
+        self.need("format", lambda v: isinstance(v, str) and v == FORMAT, f"'{FORMAT}'")
+        version = self.need("format_version", lambda v: _is_int(v) and v in (1, FORMAT_VERSION, LINEAR_PATH_VERSION),
+                            f"1, {FORMAT_VERSION} or {LINEAR_PATH_VERSION} (the versions this reader knows)")
+        self.need("activation", lambda v: isinstance(v, str) and v == "tanh", "'tanh'")
+        self.need("integrator", lambda v: isinstance(v, str) and v == "rk4", "'rk4' (classic 4-stage)")
+        return version
 
 
 def read_model(path):
@@ -180,22 +164,8 @@ def _dataset(f, path, name, shape):
 
 def spec_attrs(spec):
     """The root attributes that describe ``spec`` (format version 2, or 3 with the linear path)."""
-    version = LINEAR_PATH_VERSION if spec.linear_aggregate else FORMAT_VERSION
-    attrs = dict(format=FORMAT, format_version=version, kind=spec.kind, aggregation=spec.aggregation,
-                 state_dim=spec.state_dim, control_dim=spec.control_dim, message_dim=spec.message_dim,
-                 hidden=spec.hidden, activation="tanh", dt=float(spec.dt), substeps=spec.substeps,
-                 integrator="rk4", zero_messages=int(spec.zero_messages), self_messages=int(spec.self_messages))
-    if spec.mean_degree is not None:
-        attrs["mean_degree"] = float(spec.mean_degree)
-    if spec.n_nodes is not None:
-        attrs["n_nodes"] = int(spec.n_nodes)
-    if spec.linear_aggregate:  # absent means off: files without the path stay as they were
-        attrs["linear_aggregate"] = 1
-    if spec.linear_aggregation is not None:  # absent: the path reads the MLP's aggregate
-        attrs["linear_aggregation"] = spec.linear_aggregation
-    if spec.linear_target != "all":  # absent: the path adds to every output
-        attrs["linear_target"] = spec.linear_target
-    return attrs
+    version = LINEAR_PATH_VERSION if spec.linear_path else FORMAT_VERSION
+    return dict(format=FORMAT, format_version=version, activation="tanh", integrator="rk4", **spec.attrs())
 
 
 def write_model(path, spec, params, norm, attrs):

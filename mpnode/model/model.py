@@ -18,13 +18,14 @@ from mpnode.base.graph import Graph, block_diagonal
 from mpnode.engine import layouts
 
 from . import file as model_file
+from .config import configured
 
 
 class Model:
     """A trained (or freshly initialised) model of any kind.
 
     theta : ndarray, shape (P,) -- flat parameters, float32 or float64 (mpnode.engine.layouts)
-    spec : engine.FieldSpec -- kind, dimensions, dt, substeps, aggregation, message switches
+    spec : mpnode.engine.FieldSpec -- kind, dimensions, dt, substeps, aggregation, message switches
     x_mean, x_std : ndarray, shape (dx,) -- the model works on (x - x_mean) / x_std
     u_mean, u_std : ndarray, shape (du,) -- the same for controls
     attrs : dict -- extra attributes saved with the model (history, provenance, seed)
@@ -48,42 +49,17 @@ class Model:
 
     # ---- construction ----------------------------------------------------
     @classmethod
-    def create(cls, state_dim, control_dim=0, message_dim=3, hidden=32, dt=0.05, substeps=1,
-               zero_messages=False, self_messages=False, seed=0, dtype=np.float32, kind="mpnode",
-               aggregation=None, mean_degree=None, n_nodes=None, linear_aggregate=False, linear_aggregation=None,
-               linear_target="all"):
+    def create(cls, state_dim, control_dim=0, *, dt=0.05, seed=0, n_nodes=None, mean_degree=None, config=None,
+               **options):
         """A new model with Glorot-uniform weights and zero biases drawn from ``seed``.
 
-        kind "l2s" and "node" have no messages (message_dim is ignored); "node" needs the
-        system's n_nodes.  aggregation defaults to the kind's own (mean; sum for l2s).
-        linear_aggregate (mpnode with messages): add the path m' W_agg, W_agg starting at 0.
-        linear_aggregation: that path's own aggregate (mean, sum or scaled; None: the MLP's);
-        it implies linear_aggregate.  mean_degree goes with "scaled" in either.
-        linear_target: "all" (the path adds to [dx/dt, dm/dt]) or "state" (dx/dt alone; it
-        implies linear_aggregate).
+        options : `ModelConfig`'s fields (kind, message_dim, hidden, aggregation, ...), over
+        ``config``'s (default: the defaults).  What the data decide: dt, ``n_nodes`` (a node
+        model's system size) and ``mean_degree`` (the "scaled" aggregation's divisor).
         """
-        linear_target = linear_target or "all"
-        linear_aggregate = bool(linear_aggregate or linear_aggregation or linear_target != "all")
-        if linear_target not in engine.LINEAR_TARGETS:
-            raise InputError("model", "linear_target", f"is {linear_target!r}", " or ".join(engine.LINEAR_TARGETS))
-        if linear_aggregation is not None and linear_aggregation not in engine.AGGREGATIONS:
-            raise InputError("model", "linear_aggregation", f"is {linear_aggregation!r}",
-                             " or ".join(engine.AGGREGATIONS))
-        if kind not in engine.KINDS:
-            raise InputError("model", "kind", f"is {kind!r}", " or ".join(engine.KINDS))
-        if linear_aggregate and (kind != "mpnode" or not message_dim or zero_messages):
-            raise InputError("model", "linear_aggregate", f"is asked for a {kind} model with message_dim "
-                             f"{message_dim}{' and zero_messages' if zero_messages else ''}",
-                             "an mpnode model with messages (message_dim > 0, no zero_messages)")
-        if kind != "mpnode":
-            message_dim, zero_messages = 0, False
-        aggregation = aggregation or engine.default_aggregation(kind)
-        spec = engine.FieldSpec(state_dim, control_dim, message_dim, hidden, float(dt), int(substeps),
-                                bool(zero_messages), bool(self_messages), kind, aggregation,
-                                None if mean_degree is None else float(mean_degree),
-                                None if n_nodes is None else int(n_nodes), bool(linear_aggregate),
-                                linear_aggregation, linear_target)
-        return cls(layouts.glorot_init(spec, seed=seed, dtype=dtype), spec, attrs={"seed": seed})
+        config = configured(options, config)
+        spec = config.spec(state_dim, control_dim, dt, n_nodes, mean_degree)
+        return cls(layouts.glorot_init(spec, seed=seed, dtype=np.dtype(config.dtype)), spec, attrs={"seed": seed})
 
     @classmethod
     def load(cls, path):
@@ -174,12 +150,11 @@ class Model:
 
     def summary(self):
         """A JSON-ready description: kind, sizes, settings, parameter count, normalisation, attrs."""
-        s = self.spec
+        s, agg = self.spec, self.spec.aggregation
         return {"kind": s.kind, "state_dim": s.state_dim, "control_dim": s.control_dim,
                 "message_dim": s.message_dim, "hidden": s.hidden, "n_nodes": s.n_nodes,
-                "aggregation": s.aggregation, "mean_degree": s.mean_degree,
-                "linear_aggregate": s.linear_aggregate, "linear_aggregation": s.linear_aggregation,
-                "linear_target": s.linear_target,
+                "aggregation": agg.mlp, "mean_degree": agg.mean_degree, "linear_aggregate": s.linear_path,
+                "linear_aggregation": agg.own_linear, "linear_target": agg.target if s.linear_path else None,
                 "dt": s.dt, "substeps": s.substeps,
                 "self_messages": s.self_messages, "zero_messages": s.zero_messages, "dtype": str(self.dtype),
                 "parameters": int(self.theta.size),
@@ -197,8 +172,9 @@ class Model:
 
 @functools.lru_cache(maxsize=16)
 def _copies(graph, n_batch):
-    """B copies of one graph, kept for reuse: the engine's per-graph plan is then built once
-    (about 1.6 ms for 128 copies of a 3-node graph, half of such a rollout)."""
+    """B copies of one graph, kept for reuse: the engine's plan for a graph is then built once per
+    graph and batch size (building it costs a good part of a short rollout).  Training batches
+    and rollouts both come through here."""
     return block_diagonal([graph] * n_batch)
 
 

@@ -36,7 +36,7 @@ def _output_blocks(spec):
     n = spec.n_nodes if spec.kind == "node" else 1
     cols = [slice(i * dx, (i + 1) * dx) for i in range(n)]
     out = [("W3", "b3", cols)]
-    if spec.kind == "mpnode" and spec.linear_aggregate:
+    if spec.linear_path:
         out.append(("W_agg", None, cols))
     return out
 

@@ -1,86 +1,75 @@
 """One training run from files and options: the function behind `mpnode train` and `finetune`,
 the sweeps and the paper suite, so that each of them trains a model the same way.
 
-Options are the command line's, with underscores: the model's (``kind``, ``message_dim``,
-``hidden``, ``zero_messages``, ``self_messages``, ``aggregation``, ``linear_aggregate``,
-``linear_aggregation``, ``linear_target``, ``substeps``, ``dtype``) and every `TrainConfig` field, ``time_limit``
-in seconds.  What the options leave unset comes from a recipe (mpnode.training.recipes: ``auto``, the
-best measured for the data's system, or ``paper``), then from the defaults.
+Options are one dict of the model's options (`ModelConfig`'s fields) and the training's
+(`TrainConfig`'s, ``time_limit`` in seconds), each under its name or an older one.  What the
+options leave unset comes from a recipe (mpnode.training.recipes: ``auto``, the best measured
+for the data's system, or ``paper``), then from the defaults.
 """
-import dataclasses
 import os
 
-import numpy as np
-
 from mpnode.base.errors import InputError
+from mpnode.base.options import defaults, option_names
 from mpnode.data import read_trajectories
-from mpnode.evaluation.evaluate import evaluate, subset
 from mpnode.model import Model
+from mpnode.model.config import ModelConfig, configured
 from mpnode.training import TrainConfig, fit
-from mpnode.training.batches import make_split
+from mpnode.training.batches import TrainingData
 from mpnode.training.recipes import finetune_recipe, recipe
 
-#: the model options and their defaults (TrainConfig's fields are the training options)
-MODEL_OPTIONS = {"kind": "mpnode", "message_dim": 3, "hidden": 32, "zero_messages": False, "self_messages": False,
-                 "aggregation": None, "linear_aggregate": False, "linear_aggregation": None,
-                 "linear_target": "all", "substeps": 1,
-                 "dtype": "float32"}
-TRAIN_OPTIONS = {f.name: f.default for f in dataclasses.fields(TrainConfig)}
+#: the options of a run and their defaults: the model's and the training's
+MODEL_OPTIONS = defaults(ModelConfig)
+TRAIN_OPTIONS = defaults(TrainConfig)
+#: every name an option is known by (older names too) -> the option
+OPTION_NAMES = {**option_names(ModelConfig), **option_names(TrainConfig)}
+
+
+def canonical(options, source="options"):
+    """``options`` with every key under its option's name; InputError names an unknown key."""
+    out = {}
+    for key, value in (options or {}).items():
+        if key not in OPTION_NAMES:
+            raise InputError(source, key, "is not a training option",
+                             "one of " + ", ".join(sorted(MODEL_OPTIONS) + sorted(TRAIN_OPTIONS)))
+        out[OPTION_NAMES[key]] = value
+    return out
 
 
 def split_options(options, source="options"):
-    """(model options, TrainConfig) from one dict of options; InputError names an unknown one."""
-    model, train = dict(MODEL_OPTIONS), {}
-    for key, value in (options or {}).items():
-        if key in MODEL_OPTIONS:
-            model[key] = value
-        elif key in TRAIN_OPTIONS:
-            train[key] = value
-        else:
-            raise InputError(source, key, "is not a training option",
-                             "one of " + ", ".join(sorted(MODEL_OPTIONS) + sorted(TRAIN_OPTIONS)))
+    """(ModelConfig, TrainConfig) of one dict of options; InputError names an unknown option or
+    a value that cannot work."""
+    options = canonical(options, source)
+    train = {k: v for k, v in options.items() if k in TRAIN_OPTIONS}
     try:
-        config = TrainConfig(**train)
+        model = configured({k: v for k, v in options.items() if k in MODEL_OPTIONS})
+        config = TrainConfig(**train).check()
+    except InputError as e:
+        raise InputError(source, e.field, e.problem, e.expected) from None
     except TypeError as e:
         raise InputError(source, "options", str(e), "training options with values of the right type") from None
-    return model, config.check()
+    return model, config
 
 
-def mean_in_degree(datasets, self_messages, split=None):
-    """The mean in-degree over every node of every training trajectory of ``datasets`` (+1 when
-    nodes hear themselves): the ``scaled`` aggregation's divisor.  split: each file's (train
-    idx, val idx) (mpnode.training.batches.make_split), or None for all trajectories."""
-    total = count = 0
-    for f, traj in enumerate(datasets):
-        gi = np.asarray(traj.graph_index)
-        if split is not None:
-            gi = gi[split[f][0]]
-        used = np.bincount(gi, minlength=len(traj.graphs))
-        for g, times in zip(traj.graphs, used):
-            total += times * (g.n_edges + (g.n_nodes if self_messages else 0))
-            count += times * g.n_nodes
-    return total / count
-
-
-def new_model(datasets, kind="mpnode", message_dim=3, hidden=32, zero_messages=False, self_messages=False,
-              aggregation=None, linear_aggregate=False, linear_aggregation=None, linear_target="all", substeps=1,
-              dtype="float32", seed=0, split=None):
-    """A fresh model for the system of ``datasets`` (their dx, du and dt; a node model their N;
-    the scaled aggregation's mean degree from the training split ``split``, see mean_in_degree)."""
-    first = datasets[0]
+def new_model(data, config, seed=0):
+    """A fresh model of ``config`` (a ModelConfig) for the system of ``data`` (a TrainingData): its
+    dx, du and dt, a node model its N, and from the training split the normalisation and, for
+    the "scaled" aggregation, the mean in-degree."""
+    first = data.datasets[0]
     n_nodes = None
-    if kind == "node":
-        sizes = {t.n_nodes for t in datasets}
+    if config.kind == "node":
+        sizes = {t.n_nodes for t in data.datasets}
         if len(sizes) > 1:
             raise InputError("training data", "N", f"the files have {sorted(sizes)} nodes",
                              "one node count for a plain neural ODE (kind node)")
         n_nodes = sizes.pop()
-    scaled = "scaled" in (aggregation, linear_aggregation)
-    mean_degree = mean_in_degree(datasets, self_messages, split) if scaled else None
-    return Model.create(first.state_dim, first.control_dim, message_dim, hidden, first.dt, substeps, zero_messages,
-                        self_messages, seed=seed, dtype=np.dtype(dtype), kind=kind, aggregation=aggregation,
-                        mean_degree=mean_degree, n_nodes=n_nodes, linear_aggregate=linear_aggregate,
-                        linear_aggregation=linear_aggregation, linear_target=linear_target)
+    mean_degree = data.mean_in_degree(config.self_messages) if config.uses_mean_degree else None
+    model = Model.create(first.state_dim, first.control_dim, dt=first.dt, seed=seed, n_nodes=n_nodes,
+                         mean_degree=mean_degree, config=config)
+    x_mean, x_std, u_mean, u_std = data.normalization()
+    model.x_mean, model.x_std = x_mean, x_std
+    if u_mean is not None:
+        model.u_mean, model.u_std = u_mean, u_std
+    return model
 
 
 def read_all(paths):
@@ -93,9 +82,9 @@ def _attrs(paths, datasets, **more):
 
 def with_recipe(options, name, system):
     """(options completed by recipe ``name`` for ``system``, the recipe's settings used)."""
-    options = dict(options or {})
-    messages = options.get("message_dim", MODEL_OPTIONS["message_dim"]) != 0 and not options.get("zero_messages")
-    return fill_unset(options, recipe(name, system, options.get("kind", MODEL_OPTIONS["kind"]), messages))
+    options = canonical(options)
+    model = configured({k: v for k, v in options.items() if k in MODEL_OPTIONS})
+    return fill_unset(options, recipe(name, system, model.kind, model.messages))
 
 
 def fill_unset(options, settings):
@@ -124,14 +113,12 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     options, chosen = with_recipe(options, recipe_name, datasets[0].system)
     if not resume:
         _announce(notify, chosen, f"recipe {recipe_name} for {datasets[0].system}")
-    model_options, config = split_options(options)
-    model = None
-    if not resume:
-        model = new_model(datasets, **model_options, seed=config.seed, split=make_split(datasets, config))
-    names = names or paths
+    model_config, config = split_options(options)
+    names = list(map(str, names or paths))
+    data = TrainingData(datasets, config, names)
+    model = None if resume else new_model(data, model_config, config.seed)
     attrs = _attrs(names, datasets, recipe=recipe_name, schedule=config.schedule)
-    return fit(model, datasets, config, output, sources=list(map(str, names)), resume=resume, progress=progress,
-               notify=notify, model_attrs=attrs)
+    return fit(model, data, config, output, resume=resume, progress=progress, notify=notify, model_attrs=attrs)
 
 
 def finetune(model_path, paths, output, options=None, *, refit_norm=False, recipe_name="auto", resume=False,
@@ -141,7 +128,7 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
     The training options the user leaves unset come from ``recipe_name``'s fine-tuning settings.
     names, parent_name : what to call the data files and the model in attributes (see `train`)."""
     datasets = datasets or read_all(paths)
-    options = dict(options or {})
+    options = canonical(options)
     fixed = {k for k in options if k in MODEL_OPTIONS and k != "substeps"}
     if fixed:
         raise InputError("options", sorted(fixed)[0], "cannot change when fine-tuning",
@@ -150,25 +137,14 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
     if not resume:
         options, chosen = fill_unset(options, finetune_recipe(recipe_name, model.kind))
         _announce(notify, chosen, f"recipe {recipe_name} for fine-tuning")
-    model_options, config = split_options({"norm": "refit" if refit_norm else "keep", **options})
+    model_config, config = split_options({"norm": "refit" if refit_norm else "keep", **options})
     if model is not None and "substeps" in options:
-        model = model.with_spec(substeps=int(model_options["substeps"]))
-    names = names or paths
+        model = model.with_spec(substeps=model_config.substeps)
+    names = list(map(str, names or paths))
     attrs = _attrs(names, datasets, finetuned_from=parent_name or os.path.abspath(model_path),
                    finetune_recipe=recipe_name)
-    return fit(model, datasets, config, output, sources=list(map(str, names)), resume=resume, progress=progress,
+    return fit(model, TrainingData(datasets, config, names), config, output, resume=resume, progress=progress,
                notify=notify, model_attrs=attrs)
-
-
-def validation_errors(result, datasets, sources):
-    """Normalised MSE of the best model on each file's validation split:
-    list of (source, trajectories, nmse over steps, nmse at the last step)."""
-    out = []
-    for traj, src, (_, val) in zip(datasets, sources, result.split):
-        if len(val):
-            r = evaluate(result.model, subset(traj, val), source=src, check_stability=False)
-            out.append((src, len(val), r.nmse, r.nmse_last))
-    return out
 
 
 def parse_duration(value, source="--time-limit"):

@@ -35,12 +35,10 @@ from mpnode.base.errors import InputError
 from mpnode.base.tomlfile import load_toml
 from mpnode.training import recipes
 
-from .run import MODEL_OPTIONS, parse_duration, split_options
+from .run import MODEL_OPTIONS, OPTION_NAMES, parse_duration, split_options
 
 #: what a sweep file may hold at its top level
 TOP_KEYS = ("data", "test", "recipe", "train", "grid", "run")
-#: `mpnode train` flags whose library option has another name
-ALIASES = {"model": "kind", "aggregate": "aggregation", "horizon_curriculum": "curriculum"}
 #: keys of a [[run]] table that are not training options
 RUN_KEYS = ("name", "from", "data", "refit_norm", "recipe")
 #: times a run is resubmitted after the process running it died (Dask reschedules on its own)
@@ -121,7 +119,7 @@ def _table(doc, key, path):
     value = doc.get(key, {})
     if not isinstance(value, dict):
         raise InputError(path, key, f"is {value!r}", f"a table [{key}]")
-    return {ALIASES.get(k, k): v for k, v in value.items()}
+    return {OPTION_NAMES.get(k, k): v for k, v in value.items()}
 
 
 def _text(value, path, field):
@@ -155,7 +153,7 @@ def _listed_runs(doc, shared, data, recipe, path, folder):
     plans = []
     for i, table in enumerate(runs):
         where = f"run[{i}]"
-        table = {ALIASES.get(k, k): v for k, v in table.items()}
+        table = {OPTION_NAMES.get(k, k): v for k, v in table.items()}
         name = table.pop("name", None)
         if not isinstance(name, str) or not name or "/" in name or name.startswith("."):
             raise InputError(path, f"{where}.name", f"is {name!r}", "a name for the run's folder (no '/')")
@@ -267,7 +265,7 @@ def run_task(plan, test_names, parent, *files):
                                    recipe_name=plan["recipe"], datasets=datasets, names=plan["data"],
                                    parent_name=plan["parent_model"])
         seconds = time.perf_counter() - start
-        val = runs.validation_errors(result, datasets, plan["data"])
+        val = result.validation
         test = [(name, evaluate(result.model, _read(p, name), source=name, check_stability=False))
                 for name, p in zip(test_names, tests)]
         with open(output, "rb") as f:
@@ -307,8 +305,7 @@ def _mean(pairs):
 def _result(plan, result, seconds, val, test):
     return {"name": plan["name"], "key": plan["key"], "status": result.status, "message": result.message,
             "epochs": result.epoch, "best_epoch": result.best_epoch, "best_val_loss": result.best_val_loss,
-            "seconds": seconds, "val_nmse": _mean([(n, v) for _, n, v, _ in val]),
-            "val": [{"file": s, "trajectories": n, "nmse": v, "nmse_last": last} for s, n, v, last in val],
+            "seconds": seconds, "val_nmse": _mean([(f["trajectories"], f["nmse"]) for f in val]), "val": val,
             "test_nmse": _mean([(r.n_trajectories, r.nmse) for _, r in test]),
             "test_nmse_last": _mean([(r.n_trajectories, r.nmse_last) for _, r in test]),
             "test": [{"file": name, "trajectories": r.n_trajectories, "nmse": r.nmse, "nmse_last": r.nmse_last,

@@ -13,6 +13,7 @@ state: starts 0, w, 2w, ... and, when w does not divide T, one last window endin
 (overlapping the one before), so every transition is trained on and the epoch is
 deterministic; random windows would add sampling noise for no gain in coverage.
 """
+import functools
 import json
 import math
 import zlib
@@ -20,7 +21,7 @@ import zlib
 import numpy as np
 
 from mpnode.base.errors import InputError
-from mpnode.base.graph import block_diagonal
+from mpnode.model import batch_graph
 from mpnode.model.renormalise import renormalised
 
 
@@ -57,6 +58,12 @@ def split_by_graphs(graph_index, n_graphs, val_graphs, seed, file_index=0):
     on_held = np.isin(np.asarray(graph_index), held)
     return (np.flatnonzero(~on_held).astype(np.int64), np.flatnonzero(on_held).astype(np.int64),
             [int(g) for g in held])
+
+
+def split_settings(config):
+    """What decides the split, the noise and the shuffles: two configurations that agree on it
+    see the same data."""
+    return (config.seed, config.val_split, config.val_graphs, config.noise)
 
 
 def make_split(datasets, config):
@@ -103,17 +110,17 @@ class Part:
     x : ndarray, shape (T+1, B, N, dx), model dtype;  u : (T, B, N, du) or None
     gi : ndarray, shape (B,), each trajectory's graph;  graphs : the file's graphs
     index : ndarray, shape (B,), each trajectory's number in its file
+    source : the file's name (validation figures are reported per file)
     """
 
-    def __init__(self, x, u, gi, graphs, index):
-        self.x, self.u, self.gi, self.graphs, self.index = x, u, gi, graphs, index
+    def __init__(self, x, u, gi, graphs, index, source=None):
+        self.x, self.u, self.gi, self.graphs, self.index, self.source = x, u, gi, graphs, index, source
         self.n = x.shape[1]
         self.n_nodes = x.shape[2]
         self.single_graph = len(graphs) == 1 or len(np.unique(gi)) <= 1
-        self._graph_cache = {}
 
     @classmethod
-    def of_file(cls, traj, idx, model, noise_std=0.0, rng=None):
+    def of_file(cls, traj, idx, model, noise_std=0.0, rng=None, source=None):
         """Trajectories ``idx`` of ``traj``, normalised with ``model``'s constants, plus Gaussian noise."""
         x = model.normalize_x(np.asarray(traj.x)[idx])
         if noise_std > 0 and len(idx):
@@ -122,7 +129,7 @@ class Part:
         if traj.u is not None:
             u = np.ascontiguousarray(model.normalize_u(np.asarray(traj.u)[idx]).transpose(1, 0, 2, 3))
         return cls(np.ascontiguousarray(x.transpose(1, 0, 2, 3)), u, np.asarray(traj.graph_index)[idx],
-                   traj.graphs, idx)
+                   traj.graphs, idx, source)
 
     def windows(self, window):
         """The windows of ``window`` steps of every trajectory (module docstring) as a new Part:
@@ -151,40 +158,76 @@ class Part:
         return x, u, self.graph(sel)
 
     def graph(self, sel):
-        b = len(sel)
+        """The batch's block-diagonal graph (copies of one graph come from batch_graph's cache)."""
         if self.single_graph:
-            g = self._graph_cache.get(b)
-            if g is None:
-                one = self.graphs[int(self.gi[0])] if len(self.gi) else self.graphs[0]
-                g = self._graph_cache[b] = block_diagonal([one] * b)
-            return g
-        return block_diagonal([self.graphs[int(i)] for i in self.gi[sel]])
+            return batch_graph(self.graphs[int(self.gi[0])] if len(self.gi) else self.graphs[0], len(sel))
+        return batch_graph([self.graphs[int(i)] for i in self.gi[sel]], len(sel))
 
 
-def prepare(model, datasets, config):
-    """Split, normalise and add noise; returns (train parts, val parts, split) with
-    split[f] = (train idx, val idx).
+class TrainingData:
+    """The training files made ready once: checked, split, fingerprinted, with the statistics a
+    new model takes from its training split (normalisation, mean in-degree).
 
-    config.norm "fit" sets ``model``'s constants to the training split's (a new model);
-    "refit" does too, and changes the weights so that the model computes what it did
-    (mpnode.model.renormalise: a trained model fine-tuned on data of another spread); "keep" leaves them.
-    Modifies ``model`` in place unless "keep".
+    datasets : list of Trajectories;  sources : their names (for messages)
+    split : list of (train idx, val idx) per file (`make_split`)
     """
-    split = make_split(datasets, config)
-    if config.norm in ("fit", "refit"):
-        x_mean, x_std = fit_normalization([np.asarray(t.x)[tr] for t, (tr, _) in zip(datasets, split)])
-        u_mean, u_std = model.u_mean, model.u_std
-        if model.spec.control_dim:
-            u_mean, u_std = fit_normalization([np.asarray(t.u)[tr] for t, (tr, _) in zip(datasets, split)])
-        if config.norm == "refit":
-            model.theta[:] = renormalised(model, x_mean, x_std, u_mean, u_std).theta
-        model.x_mean, model.x_std, model.u_mean, model.u_std = x_mean, x_std, u_mean, u_std
-    train, val = [], []
-    for f, (traj, (tr, va)) in enumerate(zip(datasets, split)):
-        rng = np.random.default_rng([config.seed, 3, f])
-        train.append(Part.of_file(traj, tr, model, config.noise, rng))
-        val.append(Part.of_file(traj, va, model))
-    return train, [v for v in val if v.n], split
+
+    def __init__(self, datasets, config, sources=None):
+        self.datasets = list(datasets)
+        if not self.datasets:
+            raise InputError("training data", "files", "none given", "at least one trajectory file")
+        self.sources = list(sources or [f"data[{i}]" for i in range(len(self.datasets))])
+        check_same_kind(self.datasets, self.sources)
+        self.seed, self.noise = config.seed, config.noise
+        self.split_settings = split_settings(config)
+        self.split = make_split(self.datasets, config)
+        self.fingerprint = fingerprint(self.datasets)
+
+    def training(self, field):
+        """Every file's training trajectories of ``field`` ("x" or "u")."""
+        return [np.asarray(getattr(t, field))[tr] for t, (tr, _) in zip(self.datasets, self.split)]
+
+    @functools.cached_property
+    def _normalization(self):
+        x_mean, x_std = fit_normalization(self.training("x"))
+        if not self.datasets[0].control_dim:
+            return x_mean, x_std, None, None
+        return (x_mean, x_std) + fit_normalization(self.training("u"))
+
+    def normalization(self):
+        """(x_mean, x_std, u_mean, u_std) of the training split (u's None without controls), copies."""
+        return tuple(None if a is None else a.copy() for a in self._normalization)
+
+    def mean_in_degree(self, self_messages):
+        """The mean in-degree over every node of every training trajectory (+1 when nodes hear
+        themselves): the ``scaled`` aggregation's divisor."""
+        total = count = 0
+        for traj, (tr, _) in zip(self.datasets, self.split):
+            used = np.bincount(np.asarray(traj.graph_index)[tr], minlength=len(traj.graphs))
+            for g, times in zip(traj.graphs, used):
+                total += times * (g.n_edges + (g.n_nodes if self_messages else 0))
+                count += times * g.n_nodes
+        return total / count
+
+    def parts(self, model, norm):
+        """(train parts, val parts) of every file, normalised with ``model``'s constants after
+        ``norm`` set them: "fit" (the training split's), "refit" (the same, the weights changed
+        so that the model computes what it did: mpnode.model.renormalise) or "keep".
+        Modifies ``model`` unless "keep"; files without validation trajectories have no val part."""
+        if norm in ("fit", "refit"):
+            x_mean, x_std, u_mean, u_std = self.normalization()
+            if u_mean is None:
+                u_mean, u_std = model.u_mean, model.u_std
+            if norm == "refit":
+                model.theta[:] = renormalised(model, x_mean, x_std, u_mean, u_std).theta
+            model.x_mean, model.x_std, model.u_mean, model.u_std = x_mean, x_std, u_mean, u_std
+        train, val = [], []
+        for f, (traj, (tr, va)) in enumerate(zip(self.datasets, self.split)):
+            rng = np.random.default_rng([self.seed, 3, f])
+            train.append(Part.of_file(traj, tr, model, self.noise, rng, self.sources[f]))
+            if len(va):
+                val.append(Part.of_file(traj, va, model, source=self.sources[f]))
+        return train, val
 
 
 def window_starts(horizon, window):

@@ -4,6 +4,7 @@ import math
 from dataclasses import dataclass
 
 from mpnode.base.errors import InputError
+from mpnode.base.options import option
 
 from . import losses
 from .optim import CLIP_MODES
@@ -13,7 +14,7 @@ SCHEDULES = ("plateau", "cosine")
 NORMS = ("fit", "refit", "keep")
 
 
-@dataclass
+@dataclass(kw_only=True)
 class TrainConfig:
     """Everything that decides a training run besides the model and the data.
 
@@ -48,7 +49,7 @@ class TrainConfig:
     blowup: float = 100.0
     time_limit: float = None
     checkpoint_seconds: float = 10.0
-    curriculum: tuple = ()
+    curriculum: tuple = option((), aliases=("horizon_curriculum",))
     curriculum_epochs: int = 100
     schedule: str = "plateau"
     val_graphs: int = 0

@@ -3,7 +3,7 @@
 The recipe (docs/design.md says where each part comes from): full-horizon single shooting
 from each trajectory's first state; Huber loss on z-scored states, summed over dimensions
 and steps and averaged over nodes (mpnode.training.losses); Adam behind a gradient clip norm applied
-to each parameter array; batches of 128 trajectories (mpnode.training.batches); a random 70/30
+to each parameter array; batches of ``batch_size`` trajectories (mpnode.training.batches); a random 70/30
 train/validation split with the z-score constants fitted on the training split only;
 Gaussian noise (std 1e-4) added once to the normalised training states; the learning rate
 halved after ``patience`` epochs without a new best validation loss; the best-validation
@@ -34,10 +34,11 @@ import numpy as np
 from mpnode import engine
 from mpnode.base.errors import InputError
 from mpnode.engine import layouts
+from mpnode.evaluation import metrics
 from mpnode.model import check_data
 
 from . import losses
-from .batches import check_same_kind, epoch_batches, fingerprint, prepare
+from .batches import TrainingData, epoch_batches, split_settings
 from .config import TrainConfig, curriculum_stage
 from .log import TrainLog
 from .optim import array_slices, clip_gradient
@@ -50,6 +51,10 @@ class TrainResult:
 
     model : the best-validation Model (normalisation included)
     status : "completed" | "time_limit" | "diverged" | "interrupted"
+    validation : per validation file at the best epoch: {"file", "trajectories", "nmse" (mean over
+        steps 1..T), "nmse_last"}, the normalised MSE `mpnode eval` reports on those trajectories
+    config : the run's TrainConfig (a resumed run's: its checkpoint's)
+    split : every file's (train idx, val idx)
     """
 
     model: object
@@ -61,7 +66,14 @@ class TrainResult:
     lr: float
     seconds: float
     history: list = field(default_factory=list)
+    validation: list = field(default_factory=list)
+    config: TrainConfig = None
     split: list = field(default_factory=list)
+
+    @property
+    def val_nmse(self):
+        """The validation normalised MSE at the best epoch over all files (weighted by trajectories)."""
+        return weighted_nmse(self.validation)
 
 
 
@@ -142,13 +154,13 @@ def bad_step(state, problem, notify):
                        f"the best finite one (epoch {state.best_epoch}). Try a smaller --lr.")
 
 
-def end_of_epoch(state, val, notify):
+def end_of_epoch(state, val, files, notify):
     """Keep the weights if ``val`` is a new best; set the next epoch's learning rate (the cosine
     schedule, or a cut after ``patience`` flat epochs).  Returns whether the epoch improved."""
     config = state.config
     improved = val is not None and math.isfinite(val) and val < state.best_val
     if improved:
-        state.improve(val)
+        state.improve(val, files)
     if config.schedule == "cosine":
         state.opt.lr = state.lr_scale * cosine_lr(config, budget_used(state))
     elif not improved and state.epoch - state.last_improve >= config.patience and state.opt.lr > config.min_lr:
@@ -177,35 +189,37 @@ def cosine_lr(config, used):
 # Validation and the curriculum
 # ---------------------------------------------------------------------------
 class Validator:
-    """Full-horizon rollouts of some parts (no noise): the loss per node, and the normalised MSE
-    (mpnode.evaluation.metrics' definition, steps 1..T) that `mpnode eval` would report on them."""
+    """Full-horizon rollouts of the validation parts (no noise): the loss per node, and per file
+    the normalised MSE `mpnode eval` would report (mpnode.evaluation.metrics, steps 1..T)."""
 
     def __init__(self, parts, loss, chunk=8192):
         self.loss = loss
-        self.jobs = []
+        self.parts = []  # (source, trajectories, variance per dimension, [(x, u, graph) chunks])
         for part in parts:
             size = max(1, chunk // part.n_nodes)
-            for i in range(0, part.n, size):
-                self.jobs.append(part.batch(np.arange(i, min(i + size, part.n))))
-        self.n_nodes = sum(x.shape[1] for x, _, _ in self.jobs)
-        dx = self.jobs[0][0].shape[-1]
-        flat = [x.reshape(-1, dx).astype(np.float64) for x, _, _ in self.jobs]
-        count = sum(f.shape[0] for f in flat)
-        mean = sum(f.sum(axis=0) for f in flat) / count
-        var = sum(((f - mean) ** 2).sum(axis=0) for f in flat) / count
-        self.var = np.where(var > 0, var, 1.0)
+            jobs = [part.batch(np.arange(i, min(i + size, part.n))) for i in range(0, part.n, size)]
+            self.parts.append((part.source, part.n, metrics.variance(part.x), jobs))
+        self.n_nodes = sum(x.shape[1] for *_, jobs in self.parts for x, _, _ in jobs)
 
     def __call__(self, spec, theta):
-        """(loss, nmse); both inf when a rollout is non-finite."""
-        total, sq, count = 0.0, 0.0, 0
-        for x, u, g in self.jobs:
-            pred = engine.forward(spec, theta, x[0], g, u, x.shape[0] - 1)
-            total += losses.value(pred, x, self.loss) * x.shape[1]
-            e = pred[1:].astype(np.float64) - x[1:]
-            sq = sq + (e * e).sum(axis=(0, 1))
-            count += e.shape[0] * e.shape[1]
-        nmse = float(np.mean(sq / count / self.var))
-        return total / self.n_nodes, (nmse if math.isfinite(total) and math.isfinite(nmse) else math.inf)
+        """(loss, per-file figures); the loss is inf when a rollout is non-finite."""
+        total, files = 0.0, []
+        for source, n, var, jobs in self.parts:
+            steps = 0.0
+            for x, u, g in jobs:
+                pred = engine.forward(spec, theta, x[0], g, u, x.shape[0] - 1)
+                total += losses.value(pred, x, self.loss) * x.shape[1]
+                steps = steps + metrics.normalised_sq_error(pred[1:], x[1:], var=var).sum(axis=(1, 2))
+            count = sum(x.shape[1] for x, _, _ in jobs) * len(var)  # node rows times dimensions
+            files.append({"file": source, "trajectories": n, "nmse": float(steps.mean() / count),
+                          "nmse_last": float(steps[-1] / count)})
+        return total / self.n_nodes, files
+
+
+def weighted_nmse(files):
+    """The trajectory-weighted mean of the files' normalised MSE (inf when any is; None without files)."""
+    n = sum(f["trajectories"] for f in files)
+    return sum(f["trajectories"] * f["nmse"] for f in files) / n if n else None
 
 
 class Curriculum:
@@ -234,9 +248,9 @@ class Curriculum:
 # ---------------------------------------------------------------------------
 # The loop
 # ---------------------------------------------------------------------------
-def fit(model, datasets, config=None, output=None, *, sources=None, resume=False, progress=None, notify=None,
+def fit(model, data, config=None, output=None, *, sources=None, resume=False, progress=None, notify=None,
         model_attrs=None):
-    """Train ``model`` on ``datasets`` (list of Trajectories); return a TrainResult.
+    """Train ``model`` on ``data`` (a TrainingData, or a list of Trajectories); return a TrainResult.
 
     output : model file path, or None (nothing written).  When given, the best model is
         saved there atomically (at epoch 0, then with the checkpoint `state_path(output)` at
@@ -246,17 +260,16 @@ def fit(model, datasets, config=None, output=None, *, sources=None, resume=False
         learning rate, counters, split and normalisation come from it, and so does the
         configuration except ``epochs`` and ``time_limit`` (taken from ``config``).
         ``model`` may be None then.
+    sources : the files' names in messages (a list of Trajectories; a TrainingData has its own).
     progress : called after every epoch (and once for epoch 0) with the log record (dict).
     notify : called with a one-line message for events (skipped steps, learning-rate drops).
     model_attrs : extra attributes stored in the saved model (e.g. the training files).
     Raises InputError for incompatible data or a checkpoint that does not match them.
     """
     notify = notify or (lambda msg: None)
-    sources = list(sources or [f"data[{i}]" for i in range(len(datasets))])
-    state = start_state(model, datasets, config or TrainConfig(), output, resume, sources)
+    state, data = start_state(model, data, config or TrainConfig(), output, resume, sources)
     config = state.config
-    norm = "keep" if resume else config.norm  # a resumed run's constants are the fitted ones
-    train_parts, val_parts, split = prepare(state.model, datasets, dataclasses.replace(config, norm=norm))
+    train_parts, val_parts = data.parts(state.model, "keep" if resume else config.norm)  # resumed: fitted before
     validate = Validator(val_parts or train_parts, config.loss)
     attrs = dict(model_attrs or {})
     log = TrainLog(output)
@@ -278,38 +291,49 @@ def fit(model, datasets, config=None, output=None, *, sources=None, resume=False
     if status == "completed" and resume and loop.epochs_run == 0:
         message = f"nothing to do: the run already has {state.epoch} epochs (raise --epochs to continue)"
     return TrainResult(state.best_model(**attrs, epoch=state.best_epoch, val_loss=state.best_val), status, message,
-                       state.best_val, state.best_epoch, state.epoch, state.opt.lr, loop.elapsed(), history, split)
+                       state.best_val, state.best_epoch, state.epoch, state.opt.lr, loop.elapsed(), history,
+                       state.best_files if val_parts else [], config, data.split)
 
 
-def start_state(model, datasets, config, output, resume, sources):
-    """A new TrainState for ``model``, or the one saved beside ``output`` (resume): checked
-    against the data; ``config``'s epochs and time_limit apply to a resumed run too."""
-    datasets = list(datasets)
-    if not datasets:
-        raise InputError("training data", "files", "none given", "at least one trajectory file")
-    check_same_kind(datasets, sources)
-    fp = fingerprint(datasets)
+def start_state(model, data, config, output, resume, sources):
+    """(a new TrainState for ``model``, or the one saved beside ``output`` (resume), the
+    TrainingData under the run's configuration), checked against each other; ``config``'s
+    epochs and time_limit apply to a resumed run too."""
     if resume:
         if output is None:
             raise InputError("--resume", "output", "resume needs the output model path", "-o MODEL.h5")
         state = TrainState.load(state_path(output))
-        if state.fingerprint != fp:
-            raise InputError(state_path(output), "fingerprint", "the checkpoint was made with other training data",
-                             "the same data files, in the same order, as the interrupted run")
         state.config = dataclasses.replace(state.config, epochs=config.epochs, time_limit=config.time_limit)
     else:
-        state = TrainState(model.copy(), config, fp)
+        state = TrainState(model.copy(), config, None)
     state.config.check()
-    check_data(state.model, datasets, sources)
-    return state
+    data = as_training_data(data, state.config, sources)
+    if resume and state.fingerprint != data.fingerprint:
+        raise InputError(state_path(output), "fingerprint", "the checkpoint was made with other training data",
+                         "the same data files, in the same order, as the interrupted run")
+    state.fingerprint = data.fingerprint
+    check_data(state.model, data.datasets, data.sources)
+    return state, data
+
+
+def as_training_data(data, config, sources=None):
+    """``data`` as a TrainingData split under ``config`` (a list of Trajectories is prepared here;
+    a TrainingData prepared under another split, e.g. before a resume read its checkpoint, again)."""
+    if isinstance(data, TrainingData):
+        if data.split_settings == split_settings(config):
+            return data
+        sources, data = data.sources, data.datasets
+    return TrainingData(data, config, sources)
 
 
 def first_epoch(state, validate):
     """Epoch 0: the initial validation loss becomes the first best and the blow-up reference."""
-    v0, nmse0 = validate(state.model.spec, state.theta)
+    v0, files = validate(state.model.spec, state.theta)
     state.best_val = state.ref_loss = v0 if math.isfinite(v0) else math.inf
+    state.best_files = files
     state.best_theta = state.theta.copy()  # the weights just validated: a refit changed them since the state was made
-    return {"epoch": 0, "train_loss": None, "val_loss": v0, "val_nmse": nmse0, "best_val_loss": state.best_val,
+    return {"epoch": 0, "train_loss": None, "val_loss": v0, "val_nmse": weighted_nmse(files), "best_val_loss": state.best_val,
+            "best_val_nmse": weighted_nmse(files),
             "grad_norm": None,
             "lr": state.opt.lr, "seconds": 0.0, "elapsed": 0.0, "skipped_steps": 0, "improved": True,
             "window": None, "stage": None}
@@ -338,7 +362,7 @@ class _Loop:
 
     def save(self, force=False):
         """The best model (when it changed) and the checkpoint, at most every checkpoint_seconds
-        unless forced: writing both after every improving epoch cost small runs ~15% of the epoch."""
+        unless forced: writing both after every improving epoch costs a small run a large share of each epoch."""
         now = time.perf_counter()
         if self.output is None or not (force or now - self.last_save >= self.state.config.checkpoint_seconds):
             return
@@ -358,11 +382,11 @@ class _Loop:
                 stats = run_epoch(state, parts, self.notify)
                 state.epoch += 1
                 self.epochs_run += 1
-                val, nmse = self.validate(state.model.spec, state.theta)
+                val, files = self.validate(state.model.spec, state.theta)
                 state.elapsed = self.elapsed()
-                improved = end_of_epoch(state, val, self.notify)
+                improved = end_of_epoch(state, val, files, self.notify)
                 now = time.perf_counter()
-                record = epoch_record(state, stats, val, nmse, improved, now - t0, window, stage)
+                record = epoch_record(state, stats, val, weighted_nmse(files), improved, now - t0, window, stage)
                 history.append(record)
                 self.log.append(record)
                 self.snap = state.snapshot()
@@ -383,6 +407,7 @@ def epoch_record(state, stats, val, nmse, improved, seconds, window, stage):
     """The log line of a finished epoch."""
     return {"epoch": state.epoch, "train_loss": stats.loss_sum / stats.nodes if stats.nodes else None,
             "val_loss": val, "val_nmse": nmse, "best_val_loss": state.best_val,
+            "best_val_nmse": weighted_nmse(state.best_files),
             "grad_norm": stats.norm_sum / stats.steps if stats.steps else None,
             "grad_norm_max": stats.norm_max if stats.steps else None, "lr": state.opt.lr, "seconds": seconds,
             "elapsed": state.elapsed, "skipped_steps": stats.skipped, "improved": improved, "window": window,

@@ -30,7 +30,8 @@ class TrainState:
 
     model : the Model being trained (its theta is updated in place; its normalisation is
     the run's); best_theta, best_moments (2, P), best_t : the best weights and Adam's state
-    then; epoch : finished epochs; ref_loss : the initial validation loss (blow-up test).
+    then; epoch : finished epochs; ref_loss : the initial validation loss (blow-up test);
+    best_files : the validation figures of each file at the best epoch (`Validator`).
     """
 
     def __init__(self, model, config, data_fingerprint):
@@ -40,6 +41,7 @@ class TrainState:
         self.best_moments, self.best_t = np.stack([self.opt.m, self.opt.v]), 0
         self.epoch = self.best_epoch = self.last_improve = self.bad_streak = 0
         self.best_val = self.ref_loss = math.inf
+        self.best_files = []
         self.elapsed = 0.0
         self.lr_scale = 1.0  # bad steps halve it: the schedule's learning rates are scaled by it
 
@@ -47,9 +49,10 @@ class TrainState:
     def theta(self):
         return self.model.theta
 
-    def improve(self, val):
-        """Record the current weights as the best (validation loss ``val``)."""
+    def improve(self, val, files):
+        """Record the current weights as the best (validation loss ``val``, per-file figures ``files``)."""
         self.best_val, self.best_epoch, self.last_improve, self.bad_streak = val, self.epoch, self.epoch, 0
+        self.best_files = files
         self.best_theta = self.theta.copy()
         self.best_moments, self.best_t = np.stack([self.opt.m, self.opt.v]), self.opt.t
 
@@ -72,11 +75,12 @@ class TrainState:
                 "best_epoch": np.int64(self.best_epoch), "last_improve": np.int64(self.last_improve),
                 "bad_streak": np.int64(self.bad_streak), "elapsed": np.float64(self.elapsed),
                 "config": json.dumps(dataclasses.asdict(self.config)), "fingerprint": self.fingerprint,
-                "spec": json.dumps(dataclasses.asdict(m.spec)), "model_attrs": json.dumps(m.attrs, default=str),
+                "spec": json.dumps(m.spec.attrs()), "model_attrs": json.dumps(m.attrs, default=str),
                 "x_mean": m.x_mean, "x_std": m.x_std, "u_mean": m.u_mean, "u_std": m.u_std,
                 "curriculum_stage": np.int64(curriculum_stage(self.config, max(self.epoch, 1))[0]),
                 "best_moments": self.best_moments.copy(), "best_t": np.int64(self.best_t),
-                "ref_loss": np.float64(self.ref_loss), "lr_scale": np.float64(self.lr_scale)}
+                "ref_loss": np.float64(self.ref_loss), "lr_scale": np.float64(self.lr_scale),
+                "best_files": json.dumps(self.best_files)}
         snap.update(self.opt.state())
         return snap
 
@@ -93,7 +97,7 @@ class TrainState:
 
         state = load_state(path)
         config = TrainConfig(**json.loads(str(state["config"])))
-        spec = FieldSpec(**json.loads(str(state["spec"])))
+        spec = FieldSpec.from_attrs(json.loads(str(state["spec"])))
         model = Model(state["theta"].copy(), spec, state["x_mean"], state["x_std"], state["u_mean"], state["u_std"],
                       attrs=json.loads(str(state["model_attrs"])))
         self = cls(model, config, str(state["fingerprint"]))
@@ -104,6 +108,7 @@ class TrainState:
             setattr(self, name, int(state[name]))
         self.best_val, self.ref_loss, self.elapsed = (float(state[k]) for k in ("best_val", "ref_loss", "elapsed"))
         self.lr_scale = float(state.get("lr_scale", 1.0))
+        self.best_files = json.loads(str(state.get("best_files", "[]")))
         return self
 
 

@@ -20,7 +20,7 @@ def _cache_dir():
     """<NUMBA_CACHE_DIR or this package's __pycache__>/mpnode-kernels-<digest of the sources>."""
     here = Path(__file__).resolve().parent
     digest = hashlib.sha256()
-    for path in sorted(here.glob("*.py")):
+    for path in sorted(here.glob("*.py")) + [here.parent / "dims.py"]:  # and the dims layout they read
         digest.update(path.name.encode() + path.read_bytes())
     base = numba.config.CACHE_DIR or str(here / "__pycache__")
     return os.path.join(base, "mpnode-kernels-" + digest.hexdigest()[:16])
@@ -37,8 +37,6 @@ try:
         dense_tanh_forward,
     )
     from .rk4 import (  # noqa: F401
-        L2S,
-        MPNODE,
         STAGE_TILE,
         TILE,
         rollout_blocks,

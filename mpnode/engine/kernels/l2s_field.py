@@ -8,11 +8,12 @@ Per node k, with z-scored x_k and u_k (the state is x alone):
     dx_k/dt = (2 h0_k + t_k) W_out + b_out           (= ((h0 + t) + h0) W_out: h1 = h0 + t)
 Parameters, flat in this order: W_lift (dx+du, H), b_lift (H), W_msg (H, H), b_msg (H),
 psi (H), W_upd (H, H), b_upd (H), W_out (H, dx), b_out (dx).
-``dims`` = (kind, dx, du, dm, H, self_msg, zero_msg, linear_agg) with dm = 0, linear_agg 0.
+``dims`` (mpnode.engine.dims) has dims[DM] = 0 and dims[LINEAR] = 0.
 """
 import numpy as np
 from numba import njit
 
+from ..dims import DU, DX, HIDDEN, SELF_MSG
 from .layers import (
     JIT,
     aggregate_tile,
@@ -50,7 +51,7 @@ def unpack(theta, dxu, H, dx):
 @njit(**JIT)
 def send_tile(theta, dims, zin, u, i0, i1, zoff, V, H0, S):
     """h0 and s for nodes i0..i1 into H0, S (this tile's rows); V keeps [x, u]."""
-    _, dx, du, _, H, _, _, _ = dims
+    dx, du, H = dims[DX], dims[DU], dims[HIDDEN]
     W_lift, b_lift, W_msg, b_msg, _, _, _, _, _ = unpack(theta, dx + du, H, dx)
     for r in range(i1 - i0):
         zi = i0 + r - zoff
@@ -85,7 +86,7 @@ def update_tile(theta, dims, S_all, sums, graph, i0, i1, zoff, H0, A, T):
 
     H0: this tile's h0 rows; A, T (this tile's rows) keep a and t for the VJP.
     """
-    _, dx, du, _, H, self_msg, _, _ = dims
+    dx, du, H, self_msg = dims[DX], dims[DU], dims[HIDDEN], dims[SELF_MSG]
     indptr, indices, weight = graph
     _, _, _, _, psi, W_upd, b_upd, W_out, b_out = unpack(theta, dx + du, H, dx)
     aggregate_tile(S_all, 0, H, sums, indptr, indices, weight, self_msg, i0, i1, zoff, A, 0)
@@ -104,7 +105,7 @@ def update_vjp_tile(theta, dims, GK, graph, i0, i1, zoff, H0, A, T, gtheta, gagg
     (through the residual and the decoder) into gh0, both rows ``i - zoff``; an empty
     row's cotangent of a goes to psi.  Adds into gtheta.
     """
-    _, dx, du, _, H, self_msg, _, _ = dims
+    dx, du, H, self_msg = dims[DX], dims[DU], dims[HIDDEN], dims[SELF_MSG]
     indptr, _, weight = graph
     _, _, _, _, psi, W_upd, b_upd, W_out, b_out = unpack(theta, dx + du, H, dx)
     _, _, _, _, gpsi, gW_upd, gb_upd, gW_out, gb_out = unpack(gtheta, dx + du, H, dx)
@@ -130,7 +131,7 @@ def update_vjp_tile(theta, dims, GK, graph, i0, i1, zoff, H0, A, T, gtheta, gagg
 @njit(**JIT)
 def send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, V, H0, S, gtheta, gin):
     """VJP of send_tile: gS (cotangent of s, rows ``i - zoff``) and gh0 -> gin[:, :dx]."""
-    _, dx, du, _, H, _, _, _ = dims
+    dx, du, H = dims[DX], dims[DU], dims[HIDDEN]
     W_lift, _, W_msg, _, _, _, _, _, _ = unpack(theta, dx + du, H, dx)
     gW_lift, gb_lift, gW_msg, gb_msg, _, _, _, _, _ = unpack(gtheta, dx + du, H, dx)
     n = i1 - i0

@@ -5,15 +5,16 @@ message m itself (the columns dx: of z), so nothing is computed before the neigh
 sum; m' = weight * (sum over the row).  Parameters, flat in this order (row-major):
 W1 (din, H), b1 (H), W2 (H, H), b2 (H), W3 (H, dout), b3 (dout) with din = dx + du + dm
 and dout = dx + dm, then W_agg (dm, dout), or (dm, dx) when it feeds dx/dt alone, when
-linear_agg is not 0 (the linear aggregate path).  ``dims`` = (kind, dx, du, dm, H, self_msg,
-zero_msg, linear_agg); linear_agg is a set of flags: 1 the path is there (reading the MLP's
-aggregate m'); 2 it reads s_i m'_i instead, s_i = weight[M + i] (the weight array then has 2M
-entries; e.g. mean for the MLP, scaled sum for the path: s_i = deg_i / D); 4 it adds to
-dx/dt only (W_agg (dm, dx)), so the messages' own dynamics do not hear the degree.
+dims[LINEAR] is not 0 (the linear aggregate path; ``dims``: mpnode.engine.dims).  Its bits:
+LINEAR_ON the path is there (reading the MLP's aggregate m'); LINEAR_OWN it reads s_i m'_i
+instead, s_i = weight[M + i] (the weight array then has 2M entries; e.g. mean for the MLP,
+scaled sum for the path: s_i = deg_i / D); LINEAR_STATE it adds to dx/dt only (W_agg (dm, dx)),
+so the messages' own dynamics do not hear the degree.
 """
 import numpy as np
 from numba import njit
 
+from ..dims import DM, DU, DX, HIDDEN, LINEAR, LINEAR_OWN, LINEAR_STATE, SELF_MSG, ZERO_MSG
 from .layers import (
     JIT,
     aggregate_tile,
@@ -109,7 +110,8 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
     MLP's inputs and activations for the VJP.  ``sums``: dense-path row sums or empty.
     The neighbours' messages are read from msrc[:, mcol0:mcol0+dm]: zin itself (mcol0 = dx),
     or a compact copy of its message columns (mcol0 = 0; half the memory a gather touches)."""
-    _, dx, du, dm, H, self_msg, zero_msg, linear_agg = dims
+    dx, du, dm, H = dims[DX], dims[DU], dims[DM], dims[HIDDEN]
+    self_msg, zero_msg, linear_agg = dims[SELF_MSG], dims[ZERO_MSG], dims[LINEAR]
     indptr, indices, weight = graph
     c = dx + du
     for r in range(i1 - i0):
@@ -124,8 +126,9 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
         aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, V, c)
     K = mlp_forward(theta, V, H1, H2, dx + dm)
     if linear_agg:
-        ncol = dx if linear_agg & 4 else dx + dm
-        linear_aggregate_forward(unpack_agg(theta, c + dm, H, dx + dm, dm, ncol), V, c, weight, (linear_agg & 2) != 0,
+        ncol = dx if linear_agg & LINEAR_STATE else dx + dm
+        linear_aggregate_forward(unpack_agg(theta, c + dm, H, dx + dm, dm, ncol), V, c, weight,
+                                 (linear_agg & LINEAR_OWN) != 0,
                                  i0, K)
     if zero_msg:
         K[:, dx:] = 0
@@ -140,15 +143,17 @@ def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gi
     aggregate cotangent into gagg (rows ``i - zoff``), which the transpose of the neighbour
     sum turns into the senders' message cotangents; adds into gtheta.
     """
-    _, dx, du, dm, H, _, zero_msg, linear_agg = dims
+    dx, du, dm, H = dims[DX], dims[DU], dims[DM], dims[HIDDEN]
+    zero_msg, linear_agg = dims[ZERO_MSG], dims[LINEAR]
     if zero_msg:
         GK[:, dx:] = 0
     GV = mlp_backward(theta, V, H1, H2, GK, gtheta)  # GK is left as it was given
     c = dx + du
     if linear_agg:  # before the aggregate's cotangent is read out of GV below
         din, dout = c + dm, dx + dm
-        ncol = dx if linear_agg & 4 else dout
-        linear_aggregate_backward(unpack_agg(theta, din, H, dout, dm, ncol), V, c, weight, (linear_agg & 2) != 0, i0,
+        ncol = dx if linear_agg & LINEAR_STATE else dout
+        linear_aggregate_backward(unpack_agg(theta, din, H, dout, dm, ncol), V, c, weight,
+                                  (linear_agg & LINEAR_OWN) != 0, i0,
                                   GK, unpack_agg(gtheta, din, H, dout, dm, ncol), GV)
     for r in range(i1 - i0):
         i = i0 + r

@@ -22,17 +22,16 @@ The forward drivers start from a full state z0 (M, dz) and return the final one 
 after every RK4 step when given a ``states`` array (T*substeps+1, M, dz); the reverse drivers take the cotangent of every output state,
 GX (T+1, M, dx), recompute each step's stages from the kept state and return the
 parameter cotangent (one buffer per block or tile, reduced by the caller: deterministic,
-no races) and the initial state's.  ``dims`` = (kind, dx, du, dm, H, self_msg, zero_msg, linear_agg);
+no races) and the initial state's.  ``dims``: the model's integers (slots in mpnode.engine.dims);
 ``graph`` = (indptr, indices, weight), ``tgraph`` = (tindptr, tindices) its transpose.
 """
 import numpy as np
 from numba import njit, prange
 
+from ..dims import DM, DU, DX, HIDDEN, KIND, L2S, SELF_MSG, ZERO_MSG
 from . import l2s_field, mpnode_field
 from .layers import JIT, dense_sum, transpose_tile
 
-MPNODE = 0
-L2S = 1
 TILE = 128  # rows per BLAS call inside a block (blocks hold a few hundred nodes)
 STAGE_TILE = 256  # rows per parallel task of the stagewise drivers (one big graph: fewer, larger tasks)
 
@@ -47,18 +46,18 @@ RK_B = (1.0 / 6.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 6.0)
 @njit(**JIT)
 def sent_width(dims):
     """Columns a node sends its neighbours: dm (MP-NODE messages) or H (L2S)."""
-    return dims[4] if dims[0] == L2S else dims[3]
+    return dims[HIDDEN] if dims[KIND] == L2S else dims[DM]
 
 
 @njit(**JIT)
 def state_width(dims):
-    return dims[1] + (0 if dims[0] == L2S else dims[3])
+    return dims[DX] + (0 if dims[KIND] == L2S else dims[DM])
 
 
 @njit(**JIT)
 def caches(dims, slots, n, like):
     """Per-stage caches of the field (slots, n, .): MP-NODE (V, H1, H2, -, -), L2S (V, H0, S, A, T)."""
-    kind, dx, du, dm, H = dims[0], dims[1], dims[2], dims[3], dims[4]
+    kind, dx, du, dm, H = dims[KIND], dims[DX], dims[DU], dims[DM], dims[HIDDEN]
     if kind == L2S:
         w = (dx + du, H, H, H, H)
     else:
@@ -120,7 +119,7 @@ def fold_tile(stage, h, K, z, zout, acc, i0, i1, zoff):
 @njit(**JIT)
 def send_tile(theta, dims, zin, u, i0, i1, zoff, C, slot, r0, r1):
     """Phase 1 for nodes i0..i1 (cache rows r0..r1 of slot ``slot``); nothing for the MP-NODE."""
-    if dims[0] == L2S:
+    if dims[KIND] == L2S:
         l2s_field.send_tile(theta, dims, zin, u, i0, i1, zoff, C[0][slot, r0:r1], C[1][slot, r0:r1],
                             C[2][slot, r0:r1])
 
@@ -128,11 +127,11 @@ def send_tile(theta, dims, zin, u, i0, i1, zoff, C, slot, r0, r1):
 @njit(**JIT)
 def update_tile(theta, dims, zin, u, S, sums, graph, i0, i1, zoff, C, slot, r0, r1):
     """Phase 3 for nodes i0..i1: k (n, dz).  S: what everyone sent (L2S, rows ``i - zoff``)."""
-    if dims[0] == L2S:
+    if dims[KIND] == L2S:
         return l2s_field.update_tile(theta, dims, S, sums, graph, i0, i1, zoff, C[1][slot, r0:r1],
                                      C[3][slot, r0:r1], C[4][slot, r0:r1])
     return mpnode_field.update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, C[0][slot, r0:r1],
-                                    C[1][slot, r0:r1], C[2][slot, r0:r1], zin, dims[1])
+                                    C[1][slot, r0:r1], C[2][slot, r0:r1], zin, dims[DX])
 
 
 @njit(**JIT)
@@ -143,7 +142,7 @@ def stage_range(stage, h, theta, dims, z, zin, zout, acc, u, graph, lo, hi, zoff
     adjacency (self-loop included when nodes hear themselves): the neighbour sums then
     come from one GEMM into ``sums`` instead of the CSR rows.
     """
-    kind, dx, zero_msg = dims[0], dims[1], dims[6]
+    kind, dx, zero_msg = dims[KIND], dims[DX], dims[ZERO_MSG]
     for i0 in range(lo, hi, TILE):
         i1 = min(hi, i0 + TILE)
         send_tile(theta, dims, zin, u, i0, i1, zoff, C, stage, i0 - zoff, i1 - zoff)
@@ -192,7 +191,7 @@ def k_cotangent(stage, h, a, gnext, i0, i1, zoff):
 def update_vjp_tile(stage, h, theta, dims, a, gnext, graph, i0, i1, zoff, C, slot, r0, r1, gtheta, gin, gagg, gh0):
     """Reverse phase 3 for nodes i0..i1: the field's VJP up to each node's aggregate (gagg)."""
     GK = k_cotangent(stage, h, a, gnext, i0, i1, zoff)
-    if dims[0] == L2S:
+    if dims[KIND] == L2S:
         l2s_field.update_vjp_tile(theta, dims, GK, graph, i0, i1, zoff, C[1][slot, r0:r1], C[3][slot, r0:r1],
                                   C[4][slot, r0:r1], gtheta, gagg, gh0)
     else:
@@ -203,7 +202,7 @@ def update_vjp_tile(stage, h, theta, dims, a, gnext, graph, i0, i1, zoff, C, slo
 @njit(**JIT)
 def send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C, slot, r0, r1, gtheta, gin):
     """Reverse phase 1 (L2S): the senders' cotangent gS through the send layers into gin."""
-    if dims[0] == L2S:
+    if dims[KIND] == L2S:
         l2s_field.send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C[0][slot, r0:r1], C[1][slot, r0:r1],
                                 C[2][slot, r0:r1], gtheta, gin)
 
@@ -216,7 +215,7 @@ def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff,
     four stages are recomputed (caches in ``work``), then walked backwards.
     """
     z, za, zb, acc, C, gagg, gS, gh0 = work
-    kind, dx, self_msg = dims[0], dims[1], dims[5]
+    kind, dx, self_msg = dims[KIND], dims[DX], dims[SELF_MSG]
     z[:] = zstart
     substep_range(h, theta, dims, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C)
     gz = a.copy()
@@ -262,7 +261,7 @@ def _block_work(dims, n, like):
 def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, dense_A, substeps, h, out, states,
                    zend):
     """Forward rollout from the full state z0: x at every output step into ``out``, the final z into zend."""
-    dx = dims[1]
+    dx = dims[DX]
     T = out.shape[0] - 1
     keep = states.shape[0] > 0
     for b in prange(len(block_ptr) - 1):
@@ -289,7 +288,7 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
                states, GX, gthetas, gx0):
     """Reverse pass: cotangents GX (T+1, M, dx) of the output states -> gthetas[b] (block b's
     parameter cotangent) and gx0 (M, dx).  ``states`` from rollout_blocks."""
-    dx = dims[1]
+    dx = dims[DX]
     T = GX.shape[0] - 1
     sw = sent_width(dims)
     for b in prange(len(block_ptr) - 1):
@@ -297,8 +296,8 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
         hi = block_ptr[b + 1]
         n = hi - lo
         z, za, zb, acc, C = _block_work(dims, n, GX)
-        gS = np.empty((n if dims[0] == L2S else 0, sw), GX.dtype)
-        gh0 = np.empty((n if dims[0] == L2S else 0, dims[4]), GX.dtype)
+        gS = np.empty((n if dims[KIND] == L2S else 0, sw), GX.dtype)
+        gh0 = np.empty((n if dims[KIND] == L2S else 0, dims[HIDDEN]), GX.dtype)
         work = (z, za, zb, acc, C, np.empty((n, sw), GX.dtype), gS, gh0)
         A = dense_block(dense_A, dense_n[b], dense_off[b])
         AT = dense_block(dense_AT, dense_n[b], dense_off[b])
@@ -325,7 +324,7 @@ def rollout_stagewise(theta, dims, z0, U, graph, substeps, h, out, states, zend)
     on a graph too large for the caches that halves the memory its random reads touch), so
     memory stays ~ M * (4 dz + 2 dm or 2 H) beside ``states``."""
     M = z0.shape[0]
-    kind, dx, du, dm, H = dims[0], dims[1], dims[2], dims[3], dims[4]
+    kind, dx, du, dm, H = dims[KIND], dims[DX], dims[DU], dims[DM], dims[HIDDEN]
     T = out.shape[0] - 1
     keep = states.shape[0] > 0
     ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
@@ -377,7 +376,7 @@ def rollout_stagewise(theta, dims, z0, U, graph, substeps, h, out, states, zend)
 def substep_tiles(h, theta, dims, z, za, zb, acc, u, graph, C):
     """One RK4 step of a whole graph, keeping every stage's caches C (4, M, .) for the VJP."""
     M = z.shape[0]
-    kind = dims[0]
+    kind = dims[KIND]
     ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
     none = np.empty((0, 0), z.dtype)
     for stage in range(4):
@@ -406,7 +405,7 @@ def vjp_stagewise(theta, dims, U, graph, tgraph, substeps, h, states, GX, gtheta
     """As vjp_blocks for one large graph; gthetas (ntiles, P) holds one partial sum per tile."""
     T1, M, dx = GX.shape
     T = T1 - 1
-    kind, self_msg = dims[0], dims[5]
+    kind, self_msg = dims[KIND], dims[SELF_MSG]
     sw = sent_width(dims)
     ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
     z = np.empty((M, state_width(dims)), GX.dtype)
@@ -414,7 +413,7 @@ def vjp_stagewise(theta, dims, U, graph, tgraph, substeps, h, states, GX, gtheta
     C = caches(dims, 4, M, GX)
     gagg = np.empty((M, sw), GX.dtype)
     gS = np.empty((M if kind == L2S else 0, sw), GX.dtype)
-    gh0 = np.empty((M if kind == L2S else 0, dims[4]), GX.dtype)
+    gh0 = np.empty((M if kind == L2S else 0, dims[HIDDEN]), GX.dtype)
     gthetas[:] = 0
     gz = np.zeros_like(z)
     gnew, gbuf0, gbuf1 = np.empty_like(z), np.empty_like(z), np.empty_like(z)
