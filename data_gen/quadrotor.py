@@ -13,8 +13,8 @@ torque ``tau = [L (F2 - F4), L (F3 - F1), k_m (F1 - F2 + F3 - F4)]``: rotor 1 on
 
 The integration runs one saved step at a time (the control changes every step) with a
 stiff-capable solve_ivp method (LSODA, rtol = atol = 1e-9 in the scenes: it switches to BDF
-when the stiff damped cable needs it; ~4600 RHS evaluations for T = 50 with n = 3, where Radau
-with a finite-difference Jacobian takes ~3.5x the evaluations and ~15x the time, same result to 2e-8),
+when the stiff damped cable needs it, far cheaper than Radau for the same result: the counts are
+in docs/evidence/speed.md, "The reference simulators"),
 renormalises every quaternion at the step and continues from the saved state, so
 ``x[b, k+1]`` is exactly (to the tolerances) the integration of ``x[b, k]``, ``aux/load[b, k]``
 under ``u[b, k]``: the file's controls reproduce its trajectories.
@@ -223,7 +223,8 @@ def quat_mul(a, b):
 
 
 def _cross(a, b):
-    """a x b for 3-vectors (np.cross costs ~20 us a call; the controller makes thousands)."""
+    """a x b for 3-vectors (np.cross's per-call overhead dominates for 3-vectors, and the controller
+    makes thousands of calls: docs/evidence/speed.md)."""
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 

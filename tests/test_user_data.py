@@ -1,9 +1,8 @@
-"""Your own data in: `write_trajectories` from plain arrays and `mpnode convert FILE.npz`."""
+"""Your own data in: `write_trajectories` from plain arrays and `mpnode convert FILE.npz`.
+
+The README's worked example runs in tests/test_readme.py with the rest of the README."""
 import os
 import re
-import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import networkx as nx
@@ -17,7 +16,7 @@ from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph
 from mpnode.data import Trajectories, read_trajectories
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+DOCS = Path(__file__).resolve().parents[1] / "docs"
 
 
 def states(B=3, T=4, N=4, dx=2, seed=0):
@@ -221,38 +220,8 @@ def test_help_and_the_format_document_every_key():
     from mpnode.data.npz import KEYS
 
     res = CliRunner().invoke(main, ["convert", "--help"])
-    doc = (README.parent / "docs" / "trajectory-format.md").read_text()
+    doc = (DOCS / "trajectory-format.md").read_text()
     for key in KEYS:
         for name in re.findall(r"[a-z][a-z_0-9]*", key.split(" (")[0]):
             if name not in ("anything", "else", "or"):
                 assert name in res.output and (f"| `{name}`" in doc or f", `{name}`" in doc), name
-
-
-# ---- the README's worked example runs as written ------------------------------------------
-
-def readme_example():
-    """The README section "Your own data": its python block and its shell commands."""
-    text = README.read_text()
-    section = text[text.index("## Your own data"):]
-    section = section[:section.index("\n## ", 3)]
-    blocks = re.findall(r"^```(\w*)\n(.*?)^```", section, re.S | re.M)
-    python = [code for lang, code in blocks if lang == "python"]
-    shell = [code for lang, code in blocks if lang == ""]
-    assert python and shell
-    return python, [line.split("#")[0].strip() for block in shell for line in block.splitlines()
-                    if line.strip() and not line.startswith("#")]
-
-
-def test_the_readme_example_runs_as_written(tmp_path):
-    python, commands = readme_example()
-    for code in python:
-        proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0, proc.stderr
-    mpnode_cmd = os.path.join(os.path.dirname(sys.executable), "mpnode")
-    for cmd in commands:
-        args = shlex.split(cmd)
-        assert args[0] == "mpnode", cmd
-        proc = subprocess.run([mpnode_cmd, *args[1:]], cwd=tmp_path, capture_output=True, text=True, timeout=600)
-        assert proc.returncode == 0, cmd + "\n" + proc.stdout[-2000:] + proc.stderr[-2000:]
-    t = read_trajectories(tmp_path / "springs.h5")
-    assert t.system == "springs" and t.n_nodes == 5

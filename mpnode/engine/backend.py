@@ -10,10 +10,11 @@ _blas_libs = None
 
 @contextlib.contextmanager
 def single_threaded_blas():
-    """Pin BLAS to one thread while numba's threads call it (two pools fight: 5-100x slower).
+    """Pin BLAS to one thread while numba's threads call it (two thread pools on the same cores
+    fight, and rollouts slow down many times).
 
-    The libraries are found once (threadpoolctl's scan costs ~2 ms); each call then only
-    sets and restores their thread counts.
+    The libraries are found once (threadpoolctl's scan of the loaded libraries is slow beside a
+    kernel call); each call then only sets and restores their thread counts.
     """
     global _blas_libs
     if _blas_libs is None:

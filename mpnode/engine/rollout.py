@@ -5,8 +5,8 @@ the rollout, the *discrete adjoint*: for any cotangent gx of the output states i
 the exact gradient, with respect to the parameters and the initial state, of
 <gx, rollout> as computed (not of the ODE it approximates).  Losses, windows, multiple
 shooting are the caller's business (`mpnode.training.losses`).  Cost: memory for one state per RK4
-step (T*substeps+1 arrays of (M, dz)); time about 4x a rollout (forward, recomputed
-stages, and a VJP that costs about twice a forward).  Stage values are recomputed rather
+step (T*substeps+1 arrays of (M, dz)); time a few rollouts' worth (forward, recomputed
+stages, and a VJP that costs about twice a forward; docs/evidence/speed.md).  Stage values are recomputed rather
 than stored, so memory does not grow with the hidden width.
 
 Arrays here are time-major and flat over nodes: x (T+1, M, dx), u (T, M, du).

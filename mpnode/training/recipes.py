@@ -3,8 +3,8 @@
 ``paper`` is the MP-NODE paper's recipe exactly: the mean of the neighbours' messages,
 batches of 128 trajectories and a constant learning rate cut on plateaus (TrainConfig's
 defaults).  ``auto`` (the default) is the best we measured: for every system, and for the
-kind of system the data hold (their ``system`` attribute; benchmarks/paper, experiments 7 and
-13, and the README's recipe table say why).  Every setting stays overridable by its own option.
+kind of system the data hold (their ``system`` attribute).  The measurements behind every entry:
+docs/evidence/recipes.md.  Every setting stays overridable by its own option.
 """
 from mpnode.base.errors import InputError
 
@@ -12,9 +12,8 @@ PAPER = {"aggregation": "mean", "schedule": "plateau", "batch_size": 128}
 
 #: what recipe auto changes from the paper's for the graph models (MP-NODE, L2S) of every system: a
 #: batch costs its trajectories, not its count, so batches of 32 take four times the Adam steps
-#: per epoch for about the same time (experiment 13: lower test error at equal wall time on all
-#: five systems; L2S 2x and 32x lower on pendulum and gene16).  A plain NODE keeps the paper's
-#: 128: there it was a tie (1.1x on pendulum, 1.0x on gene16).
+#: per epoch for about the same time, which gave the lower test error at equal wall time.  A plain
+#: NODE keeps the paper's 128: there it was a tie (docs/evidence/recipes.md, batch sizes).
 AUTO_ALL = {"batch_size": 32}
 AUTO_ALL_KINDS = ("mpnode", "l2s")
 
@@ -22,15 +21,15 @@ AUTO_ALL_KINDS = ("mpnode", "l2s")
 AUTO = {
     # the gene dynamics sum over neighbours, and the mean hides a node's degree: the MLP hears
     # the degree-free mean (in range on denser graphs) and the degree reaches dx/dt only through
-    # a linear path on the scaled sum (unseen gene16 graphs 0.05 -> 0.0002-0.0004, gene64
-    # zero-shot 2.5 -> 0.06); choosing the model on a held-out graph, when the files hold several
+    # a linear path on the scaled sum, which carries a gene16 model to denser graphs; the model
+    # is chosen on a held-out graph when the files hold several (docs/evidence/recipes.md, gene)
     "gene": {"aggregation": "mean", "linear_aggregation": "scaled", "linear_target": "state", "val_graphs": 1},
 }
 
 #: what recipe auto changes from the paper's when `mpnode finetune` continues an MP-NODE model (it
 #: keeps its kind, sizes and aggregation, so only training options belong here): a fine-tuning set
 #: of a few dozen trajectories is one batch of 128, one Adam step an epoch; batches of 8 take
-#: several for about the same time (experiment 13: lower test nMSE on all three transfers)
+#: several for about the same time, which gave the lower test nMSE (docs/evidence/recipes.md)
 FINETUNE_AUTO = {"batch_size": 8}
 
 #: settings of the linear aggregate path, which only an MP-NODE model with messages has

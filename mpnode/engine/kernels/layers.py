@@ -47,7 +47,7 @@ def _tanh_overload(x):
 
         return tanh32
     # float64: Cephes' tanh with its exp written out so that LLVM vectorises it (libm's is a
-    # scalar call, ~6x slower); 1.7 ulp at most (libm: 2.1), NaN -> NaN, +-inf -> +-1.
+    # scalar call: docs/evidence/speed.md); 1.7 ulp at most (libm: 2.1), NaN -> NaN, +-inf -> +-1.
     def tanh64(x):
         ax = abs(x)
         ac = 20.0 if ax > 20.0 else ax  # tanh(20) == 1.0 in float64; NaN passes unchanged

@@ -1,0 +1,170 @@
+"""The README runs as written: its snippets in order, in one folder, as a new user would run them.
+
+Shell blocks run line by line through the installed `mpnode` console script; python blocks run
+in this process, each in a fresh namespace, with the folder as the working directory; a toml
+block whose first line is `# NAME: ...` is written to the file NAME.  Only the budgets and data
+sizes in SHRINK change, so the test stays fast; every entry must match the README exactly once,
+so the table cannot go stale.  A block no test can run is marked in the README by
+`<!-- not run by tests: REASON -->` on the line before it, and NOT_RUN lists those reasons: a
+new mark fails here until it is listed.
+"""
+import hashlib
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mpnode.data import read_trajectories
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+MPNODE = os.path.join(os.path.dirname(sys.executable), "mpnode")
+
+#: README text -> what the test runs instead: smaller budgets and data sets, nothing else
+SHRINK = {
+    "coupled_pendulum -o model.h5": "coupled_pendulum -o model.h5 --trajectories 20 --epochs 2",
+    "--trajectories 1000": "--trajectories 20",
+    "--time-limit 10m": "--epochs 2",
+    "--trajectories 50 --seed 1": "--trajectories 10 --seed 1",
+    "--time-limit 5m": "--epochs 2",
+    "--trajectories 200 --seed 2": "--trajectories 10 --seed 2",
+    '"epochs": 300': '"epochs": 2',
+    "--epochs 100": "--epochs 5",
+    "--time-limit 1m": "--trajectories 20 --epochs 2",
+    "-B 100 --seed 5": "-B 10 --seed 5",
+    "epochs = 300": "epochs = 2",
+    "--trajectories 2000": "--trajectories 8",
+}
+
+#: the README's blocks that no test runs, and why
+NOT_RUN = {
+    "installs the package and runs the whole suite, this README's test included",
+    "hours of training (tests/test_paper_quick.py runs the --quick tier)",
+}
+
+FENCE = re.compile(r"^```(\w*)\s*$")
+MARK = re.compile(r"^<!-- not run by tests: (.*) -->$")
+
+
+def readme_blocks(text=None):
+    """[(language, code, reason or None)] of every fenced block, in order."""
+    lines = (README.read_text() if text is None else text).splitlines()
+    blocks, i = [], 0
+    while i < len(lines):
+        m = FENCE.match(lines[i])
+        if not m:
+            i += 1
+            continue
+        end = next(j for j in range(i + 1, len(lines)) if lines[j].startswith("```"))
+        before = next((lines[j] for j in range(i - 1, -1, -1) if lines[j].strip()), "")
+        mark = MARK.match(before.strip())
+        blocks.append((m.group(1), "\n".join(lines[i + 1:end]) + "\n", mark.group(1) if mark else None))
+        i = end + 1
+    return blocks
+
+
+def shrunk(blocks):
+    """The runnable blocks with SHRINK applied; each SHRINK entry must occur exactly once."""
+    runnable = [(lang, code) for lang, code, reason in blocks if reason is None]
+    for old in SHRINK:
+        found = sum(code.count(old) for _, code in runnable)
+        assert found == 1, f"SHRINK entry {old!r} occurs {found} times in the README's runnable blocks"
+    out = []
+    for lang, code in runnable:
+        for old, new in SHRINK.items():
+            code = code.replace(old, new)
+        out.append((lang, code))
+    return out
+
+
+def run_shell(code, folder):
+    for line in code.splitlines():
+        args = shlex.split(line, comments=True)
+        if not args:
+            continue
+        assert args[0] == "mpnode", f"a README shell line the test cannot run: {line!r} (mark its block)"
+        proc = subprocess.run([MPNODE, *args[1:]], cwd=folder, capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, f"{line}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+
+
+def run_python(code, folder, monkeypatch):
+    monkeypatch.chdir(folder)
+    exec(compile(code, "README.md", "exec"), {"__name__": "__main__"})
+
+
+def write_toml(code, folder):
+    name = re.match(r"# ([\w.-]+\.toml):", code)
+    assert name, f"a toml block must start with '# NAME.toml: ...':\n{code}"
+    (folder / name.group(1)).write_text(code)
+
+
+def digest(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_the_readme_runs_as_written_in_one_folder(tmp_path, monkeypatch):
+    blocks = readme_blocks()
+    assert {reason for _, _, reason in blocks if reason} == NOT_RUN
+    trained = None
+    for lang, code in shrunk(blocks):
+        if lang == "":
+            run_shell(code, tmp_path)
+        elif lang == "python":
+            run_python(code, tmp_path, monkeypatch)
+        elif lang == "toml":
+            write_toml(code, tmp_path)
+        else:
+            pytest.fail(f"a README block in {lang!r}, which this test does not know how to run")
+        if trained is None and (tmp_path / "model.h5").exists():
+            trained = digest(tmp_path / "model.h5")
+    # the main job's model is still the one it trained: no later snippet wrote over it
+    assert trained == digest(tmp_path / "model.h5")
+    for name in ("python_model.h5", "library_model.h5", "l10_model.h5", "springs_model.h5",
+                 "train.png", "eval.png", "simulate.png", "sweep_out/summary.csv"):
+        assert (tmp_path / name).exists(), name
+    springs = read_trajectories(tmp_path / "springs.h5")
+    assert springs.system == "springs" and springs.n_nodes == 5
+
+
+def test_every_not_run_block_is_marked_and_listed():
+    text = "<!-- not run by tests: why -->\n```\nmpnode x\n```\n\n```python\nprint(1)\n```\n"
+    assert readme_blocks(text) == [("", "mpnode x\n", "why"), ("python", "print(1)\n", None)]
+
+
+def test_the_readme_is_a_short_manual():
+    assert len(README.read_text().splitlines()) <= 250
+
+
+def test_ci_runs_the_readme_install_and_test_commands():
+    """.ci/run installs from this repository into a fresh venv with exactly the README's
+    commands, so the README's `pytest` skips nothing that CI runs."""
+    install = [code for _, code, reason in readme_blocks() if reason and reason.startswith("installs")]
+    assert len(install) == 1
+    ci = (ROOT / ".ci" / "run").read_text().splitlines()
+    for line in install[0].splitlines():
+        assert line in ci, f"{line!r} is in the README's install block but not in .ci/run"
+    assert "python3 -m venv .venv" in ci
+
+
+ISSUE = re.compile(r"\bissues?[ -]?#?\d+", re.IGNORECASE)
+DATE = re.compile(r"\b(?:19|20)\d\d-\d\d-\d\d\b")
+
+
+EVIDENCE = ROOT / "docs" / "evidence"
+
+
+@pytest.mark.parametrize("path", [README, *sorted((ROOT / "docs").rglob("*.md")),
+                                  *sorted((ROOT / "benchmarks").rglob("*.md"))],
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_the_docs_speak_of_the_project_not_its_history(path):
+    """No issue numbers in user-facing text, no pointer outside the repository, and dates only in
+    docs/evidence, where a measurement says when it was made."""
+    text = path.read_text()
+    assert not ISSUE.search(text), ISSUE.search(text).group(0)
+    assert "../shared" not in text
+    if EVIDENCE not in path.parents:
+        assert not DATE.search(text), DATE.search(text).group(0)
