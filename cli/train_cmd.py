@@ -94,7 +94,7 @@ def training_options(f):
                           "'full' is implied at the end).  Each trajectory is cut into consecutive windows, each "
                           "starting from its true state; validation stays on the full horizon."),
         click.option("--curriculum-epochs", type=click.IntRange(min=1), default=d.curriculum_epochs,
-                     show_default=True, help="Epochs per window length of --horizon-curriculum (the full horizon "
+                     show_default=True, help="Epochs per window length of --curriculum (the full horizon "
                      "gets the rest)."),
         click.option("--resume", is_flag=True,
                      help="Continue the run whose checkpoint (OUTPUT.state) is beside -o; its settings are kept "
@@ -254,7 +254,7 @@ def print_validation(result):
                    "its training graphs (mpnode with messages; docs/model-format.md).")
 @click.option("--linear-aggregation", type=click.Choice(AGGREGATIONS),
               help="The aggregate the linear path reads, when not the MLP's own (implies --linear-aggregate).  "
-                   "E.g. --aggregate mean --linear-aggregation scaled: the MLP sees the degree-free mean, which "
+                   "E.g. --aggregation mean --linear-aggregation scaled: the MLP sees the degree-free mean, which "
                    "stays in range on denser graphs, and the degree reaches the field only through the linear "
                    "path (scaled sum, as PNA's degree scalers).")
 @click.option("--linear-target", type=click.Choice(LINEAR_TARGETS),
@@ -285,7 +285,7 @@ def train_cmd(data, trajectories, recipe, **o):
     and OUTPUT.state (checkpoint for --resume; also after a kill -9, from the last
     checkpoint).
 
-    Chaotic systems: --horizon-curriculum 5,10,full trains on short windows first.
+    Chaotic systems: --curriculum 5,10,full trains on short windows first.
 
     Exit status: 0 trained; 2 bad input; 3 training diverged (the best finite model is
     kept); 130 interrupted (continue with --resume).
