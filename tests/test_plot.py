@@ -214,7 +214,7 @@ def test_figures_are_written_atomically(tmp_path, monkeypatch):
     assert sorted(os.listdir(tmp_path)) == ["s.png"] and (tmp_path / "s.png").read_bytes() == b"old"
 
 
-# ---- the quadrotor swarm figure (benchmarks/quadrotor/swarm.py) --------------------------
+# ---- the quadrotor swarm figure (benchmarks/studies/quadrotor/swarm.py) --------------------------
 
 def _swarm(path, x, load=None):
     aux = {} if load is None else {"load": load}
@@ -224,7 +224,7 @@ def _swarm(path, x, load=None):
 
 def test_swarm_figure_beside_its_benchmark(tmp_path):
     pytest.importorskip("matplotlib")
-    spec = importlib.util.spec_from_file_location("swarm", ROOT / "benchmarks" / "quadrotor" / "swarm.py")
+    spec = importlib.util.spec_from_file_location("swarm", ROOT / "benchmarks" / "studies" / "quadrotor" / "swarm.py")
     swarm = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(swarm)
 

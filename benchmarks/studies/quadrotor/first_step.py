@@ -1,6 +1,6 @@
 """A quad3 model on quad3 and on quad6: the cable's pull it implies, and when its error passes holding x0.
 
-    python benchmarks/quadrotor/first_step.py MODEL.h5 Q3_TEST.h5 Q6_TEST.h5 [...]
+    python benchmarks/studies/quadrotor/first_step.py MODEL.h5 Q3_TEST.h5 Q6_TEST.h5 [...]
 
 Why does zero-shot 3 -> 6 fail?  One guess is the load: with n quadrotors each cable pulls
 m_L g / n, and a model trained on quad3 alone has only seen n = 3 (every node of the complete

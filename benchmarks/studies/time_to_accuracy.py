@@ -1,5 +1,5 @@
 """Time to accuracy: wall time for `mpnode train` to reach a validation nMSE, beside the same
-recipe in torch + torchdiffeq (issue 16, item 4).
+recipe in torch + torchdiffeq (a finished study; benchmarks/README.md has its table).
 
 For each system a trajectory file is generated once (1000 trajectories, the built-in scene,
 as `mpnode generate` makes it; the same file for both sides).  Then, in turn and in fresh
@@ -7,21 +7,22 @@ processes (as a user runs them):
 - mpnode: `mpnode.runs.train` (the function behind `mpnode train`) with the default recipe
   and options (Lorenz3 adds the horizon curriculum `mpnode train --help` advises for chaotic
   systems, CURRICULUM below), writing the model, log and checkpoint as the command does;
-- torch: benchmarks/tta_torch.py, the same recipe written in torch + torchdiffeq (run by
+- torch: benchmarks/studies/tta_torch.py, the same recipe written in torch + torchdiffeq (run by
   another interpreter: torch is no dependency of mpnode).
 Both report, after every epoch, the normalised MSE of the current weights on the same
 validation split (the `val_nmse` of mpnode's training log, computed the same way on the
 torch side), and stop at the first epoch whose nMSE is <= the last threshold, or at the
 time limit.  The clock starts before the training data are read (imports excluded, reported
 apart as startup) and stops at the end of that epoch's validation; an epoch is counted on
-both sides the same way.  Each run is one process; with --lock each run is its own
-exclusive block (`flock /work/gate.lock flock -x /work/cpu.lock`), the sides alternate
-and their order flips every repetition.
+both sides the same way.  Each run is one process; with --lock FILE each run holds an
+exclusive `flock` on FILE (several --lock: on each, in order), so runs of other jobs that
+take the same lock do not share the cores with it; the sides alternate and their order
+flips every repetition.
 
-    python benchmarks/bench_time_to_accuracy.py --torch-python /work/venv-peers/bin/python \\
+    python benchmarks/studies/time_to_accuracy.py --torch-python PYTHON_WITH_TORCH \\
         [--systems coupled_pendulum,lorenz3] [--reps 2] [--threads 2] [--time-limit 600] \\
-        [--sides mpnode,torch] [--lock] [--data DIR] [--json OUT] [--clock wall|cpu]
-    python benchmarks/bench_time_to_accuracy.py --report OUT[,OUT2] --time-limit 600   # the table again
+        [--sides mpnode,torch] [--lock FILE] [--data DIR] [--json OUT] [--clock wall|cpu]
+    python benchmarks/studies/time_to_accuracy.py --report OUT[,OUT2] --time-limit 600   # the table again
 
 --seeds makes repetition k use seed k on both sides.  Without it every repetition repeats seed
 0, which both sides run deterministically: it measures timing noise only.  On Lorenz3 the two
@@ -55,7 +56,6 @@ THRESHOLDS = {"coupled_pendulum": (0.01, 0.002), "lorenz3": (0.05, 0.02)}
 #: takes what `mpnode train --help` advises for chaotic systems (--horizon-curriculum 5,10,full, 100
 #: epochs each): the defaults alone stalled near nMSE 0.42 (530 epochs, 11 minutes)
 CURRICULUM = {"coupled_pendulum": (), "lorenz3": (5, 10)}
-LOCK = ["flock", "/work/gate.lock", "flock", "-x", "/work/cpu.lock"]
 
 
 class Reached(Exception):
@@ -99,7 +99,7 @@ def mpnode_worker(data, thresholds, time_limit, curriculum, seed=0):
 
 
 def run_side(side, data, thresholds, curriculum, args, seed=0):
-    """One run in a fresh process (inside an exclusive block with --lock): its RESULT record."""
+    """One run in a fresh process (holding an exclusive flock on each --lock file): its RESULT record."""
     env = dict(os.environ)
     for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         env[var] = str(args.threads)
@@ -111,8 +111,8 @@ def run_side(side, data, thresholds, curriculum, args, seed=0):
     else:
         cmd = [args.torch_python, os.path.join(HERE, "tta_torch.py"), data, "--thresholds", thr,
                "--time-limit", str(args.time_limit), "--threads", str(args.threads), "--seed", str(seed)] + windows
-    if args.lock:
-        cmd = LOCK + cmd
+    for lock in reversed(args.lock):  # flock A flock B cmd: A taken first
+        cmd = ["flock", "-x", lock] + cmd
     wait = time.time()
     out = subprocess.run(cmd, env=env, capture_output=True, text=True)
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith("RESULT ")]
@@ -125,7 +125,7 @@ def run_side(side, data, thresholds, curriculum, args, seed=0):
 
 def data_file(folder, scene):
     """The scene's file in ``folder``, generated (1000 trajectories) if missing."""
-    sys.path.insert(0, HERE)
+    sys.path.insert(0, os.path.dirname(HERE))  # benchmarks/, where bench_epoch.py is
     from bench_epoch import data_file as make
 
     return make(folder, scene)
@@ -231,9 +231,11 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--time-limit", type=float, default=600.0, help="seconds per run")
     ap.add_argument("--torch-python", default=os.environ.get("TORCH_PYTHON", "python3"),
-                    help="an interpreter with torch, torchdiffeq, h5py and numpy")
+                    help="an interpreter with torch, torchdiffeq, h5py and numpy "
+                         "(default: $TORCH_PYTHON, else python3)")
     ap.add_argument("--sides", default="mpnode,torch")
-    ap.add_argument("--lock", action="store_true", help="each run inside flock gate + exclusive cpu lock")
+    ap.add_argument("--lock", action="append", default=[], metavar="FILE",
+                    help="each run holds an exclusive flock on FILE (repeatable: each, in order)")
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "mpnode-bench-data"))
     ap.add_argument("--json", help="write every run's record and the summary here")
     ap.add_argument("--clock", default="wall", choices=sorted(CLOCKS),

@@ -5,7 +5,7 @@ It lives beside its benchmark, not in mpnode.plot, because it knows the quadroto
 positions are x[..., 0:3] in metres and the load's path is the file's ``aux/load``.  The
 library's figures (mpnode.plot: plot_eval, plot_simulation, plot_training) know no system.
 
-usage: python benchmarks/quadrotor/swarm.py TRUE.h5 PRED.h5 -o swarm.png [--trajectory 0] [--title ...]
+usage: python benchmarks/studies/quadrotor/swarm.py TRUE.h5 PRED.h5 -o swarm.png [--trajectory 0] [--title ...]
 (PRED.h5 from `mpnode eval MODEL TRUE.h5 --predictions PRED.h5`; needs the plot extra)
 """
 import argparse

@@ -2,7 +2,7 @@
 
 This file is a *peer*, not part of mpnode: it imports numpy, h5py, torch and torchdiffeq
 and nothing of mpnode (it reads the trajectory file with h5py, docs/trajectory-format.md).
-bench_time_to_accuracy.py runs it beside `mpnode.runs.train` on the same file, and the
+time_to_accuracy.py runs it beside `mpnode.runs.train` on the same file, and the
 README's "Time to accuracy" section says what the comparison is made of.
 
 The recipe is mpnode's (the paper's batch of 128; mpnode/train.py, batches.py, losses.py, optim.py,
@@ -17,7 +17,7 @@ layouts.py), step by step, so that both sides do the same arithmetic from the sa
 - classic RK4 (1/6, 1/3, 1/3, 1/6) at the data's dt through torchdiffeq.odeint, one step
   per saved state, gradient by backpropagation through the solver (not the adjoint).
   torchdiffeq's own 'rk4' is the 3/8-rule variant; 'rk4_classic' below registers the
-  classic step that torchdiffeq also ships (as /work/shared/peers/p1_torchdiffeq.py does);
+  classic step that torchdiffeq also ships;
   --method rk4 picks the 3/8 rule instead (same cost);
 - loss: Huber (delta 1) on the normalised states, summed over steps 1..T and dimensions,
   divided by the batch's node count;
@@ -36,11 +36,12 @@ layouts.py), step by step, so that both sides do the same arithmetic from the sa
 Differences that remain: float32 Adam moments (mpnode keeps them in float64) and float32
 sums in the loss (mpnode sums in float64).
 
-    python benchmarks/tta_torch.py DATA.h5 --thresholds 0.01,0.002 --time-limit 600 --threads 2
+    python benchmarks/studies/tta_torch.py DATA.h5 --thresholds 0.01,0.002 --time-limit 600 --threads 2
 
 prints one line "RESULT {json}": per epoch [epoch, wall seconds from the start (before
 reading the file) to the end of its validation, its validation nMSE, CPU seconds of the
-process], and the first epoch reaching each threshold.
+process], and the first epoch reaching each threshold.  torch is imported by `main` (after the
+thread variables are set), so this file imports without it.
 """
 import argparse
 import copy
@@ -49,6 +50,9 @@ import math
 import os
 import sys
 import time
+
+import h5py
+import numpy as np
 
 T_IMPORT = time.perf_counter()
 
@@ -67,33 +71,6 @@ def parse_args(argv=None):
     ap.add_argument("--curriculum-epochs", type=int, default=100)
     return ap.parse_args(argv)
 
-
-ARGS = parse_args() if __name__ == "__main__" else None
-if ARGS is not None:  # thread counts must be set before torch is imported
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ[var] = str(ARGS.threads)
-
-import importlib  # noqa: E402
-
-import h5py  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-import torchdiffeq  # noqa: E402
-from torchdiffeq import odeint  # noqa: E402
-from torchdiffeq._impl.fixed_grid import RK4  # noqa: E402
-from torchdiffeq._impl.misc import Perturb  # noqa: E402
-from torchdiffeq._impl.rk_common import rk4_step_func  # noqa: E402
-
-
-class ClassicRK4(RK4):
-    """torchdiffeq's fixed-grid RK4 with its classic (1/6, 1/3, 1/3, 1/6) step function."""
-
-    def _step_func(self, func, t0, dt, t1, y0):
-        f0 = func(t0, y0, perturb=Perturb.NEXT if self.perturb else Perturb.NONE)
-        return rk4_step_func(func, t0, dt, t1, y0, f0=f0, perturb=self.perturb), f0
-
-
-importlib.import_module("torchdiffeq._impl.odeint").SOLVERS["rk4_classic"] = ClassicRK4
 
 H, DM = 32, 3
 BATCH, VAL_SPLIT, NOISE = 128, 0.3, 1e-4
@@ -189,26 +166,48 @@ def glorot(dx, seed, dtype):
     return out
 
 
-class Field(torch.nn.Module):
-    """f(t, z) of the batched graph; z = [x, m] of shape (M, dx + dm)."""
+def import_torch():
+    """Import torch and torchdiffeq into this module's names, register the classic RK4 step
+    ('rk4_classic') and define the `Field` on them; the thread variables must be set before."""
+    global torch, torchdiffeq, odeint, Field
+    import importlib
 
-    def __init__(self, dx, params, dtype):
-        super().__init__()
-        self.dx = dx
-        for k, v in params.items():
-            setattr(self, k, torch.nn.Parameter(torch.tensor(v, dtype=dtype)))
-        self.graph = None
+    import torch
+    import torchdiffeq
+    from torchdiffeq import odeint
+    from torchdiffeq._impl.fixed_grid import RK4
+    from torchdiffeq._impl.misc import Perturb
+    from torchdiffeq._impl.rk_common import rk4_step_func
 
-    def use_graph(self, graph):
-        self.graph = graph
+    class ClassicRK4(RK4):
+        """torchdiffeq's fixed-grid RK4 with its classic (1/6, 1/3, 1/3, 1/6) step function."""
 
-    def forward(self, t, z):
-        src, dst, inv = self.graph
-        x, m = z[:, :self.dx], z[:, self.dx:]
-        agg = torch.zeros_like(m).index_add_(0, dst, m.index_select(0, src)) * inv
-        h = torch.tanh(torch.addmm(self.b1, torch.cat([x, agg], dim=1), self.W1))
-        h = torch.tanh(torch.addmm(self.b2, h, self.W2))
-        return torch.addmm(self.b3, h, self.W3)
+        def _step_func(self, func, t0, dt, t1, y0):
+            f0 = func(t0, y0, perturb=Perturb.NEXT if self.perturb else Perturb.NONE)
+            return rk4_step_func(func, t0, dt, t1, y0, f0=f0, perturb=self.perturb), f0
+
+    importlib.import_module("torchdiffeq._impl.odeint").SOLVERS["rk4_classic"] = ClassicRK4
+
+    class Field(torch.nn.Module):
+        """f(t, z) of the batched graph; z = [x, m] of shape (M, dx + dm)."""
+
+        def __init__(self, dx, params, dtype):
+            super().__init__()
+            self.dx = dx
+            for k, v in params.items():
+                setattr(self, k, torch.nn.Parameter(torch.tensor(v, dtype=dtype)))
+            self.graph = None
+
+        def use_graph(self, graph):
+            self.graph = graph
+
+        def forward(self, t, z):
+            src, dst, inv = self.graph
+            x, m = z[:, :self.dx], z[:, self.dx:]
+            agg = torch.zeros_like(m).index_add_(0, dst, m.index_select(0, src)) * inv
+            h = torch.tanh(torch.addmm(self.b1, torch.cat([x, agg], dim=1), self.W1))
+            h = torch.tanh(torch.addmm(self.b2, h, self.W2))
+            return torch.addmm(self.b3, h, self.W3)
 
 
 # ---------------------------------------------------------------------------- training
@@ -259,18 +258,18 @@ class Run:
         target = x.reshape(x.shape[0], -1, self.dx)
         return torch.nn.functional.huber_loss(pred[1:], target[1:], reduction="sum", delta=1.0) / target.shape[1]
 
-    @torch.no_grad()
     def validate(self):
         """(loss per node, nMSE) of the current weights on the validation split."""
-        pred = self.rollout(self.val)
-        target = self.val.reshape(self.val.shape[0], -1, self.dx)
-        loss = torch.nn.functional.huber_loss(pred[1:].double(), target[1:].double(), reduction="sum", delta=1.0)
-        e = pred[1:].double() - target[1:]
-        count = e.shape[0] * e.shape[1]
-        nmse = float(((e * e).sum(dim=(0, 1)) / count / self.val_var).mean())
-        loss = float(loss) / target.shape[1]
-        ok = math.isfinite(loss) and math.isfinite(nmse)
-        return (loss, nmse) if ok else (math.inf, math.inf)
+        with torch.no_grad():
+            pred = self.rollout(self.val)
+            target = self.val.reshape(self.val.shape[0], -1, self.dx)
+            loss = torch.nn.functional.huber_loss(pred[1:].double(), target[1:].double(), reduction="sum", delta=1.0)
+            e = pred[1:].double() - target[1:]
+            count = e.shape[0] * e.shape[1]
+            nmse = float(((e * e).sum(dim=(0, 1)) / count / self.val_var).mean())
+            loss = float(loss) / target.shape[1]
+            ok = math.isfinite(loss) and math.isfinite(nmse)
+            return (loss, nmse) if ok else (math.inf, math.inf)
 
     def step(self, x):
         """One Adam step on batch x; returns a sentence when the step must be skipped."""
@@ -371,7 +370,10 @@ class Run:
 
 
 def main():
-    args = ARGS
+    args = parse_args()
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(args.threads)  # before torch is imported
+    import_torch()
     torch.set_num_threads(args.threads)
     thresholds = [float(t) for t in args.thresholds.split(",")]
     run = Run(args)

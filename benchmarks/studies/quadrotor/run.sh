@@ -3,7 +3,7 @@
 # evaluated on fresh quad3 data and zero-shot on quad6; the best fine-tuned to quad6 on a small
 # set (paper Fig. 9) against a quad6 model trained from scratch on the same set and budget.
 # Every step is skipped when its output exists (rerun after an interruption; rm -r "$OUT" to redo).
-#   OUT=/tmp/q TIME_LIMIT=6 bash benchmarks/quadrotor/run.sh
+#   OUT=/tmp/q TIME_LIMIT=6 bash benchmarks/studies/quadrotor/run.sh
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")" && pwd)
 OUT=${OUT:-/tmp/mpnode-quadrotor}       # data, models, logs (*.h5: never committed)

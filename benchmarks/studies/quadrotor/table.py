@@ -1,4 +1,4 @@
-"""Print the results table (markdown) of benchmarks/quadrotor/run.sh from its output folder.
+"""Print the results table (markdown) of benchmarks/studies/quadrotor/run.sh from its output folder.
 
 usage: python table.py OUT
 Reads OUT/eval_*.json (mpnode eval --json) and the training logs OUT/*.h5.log.jsonl.
