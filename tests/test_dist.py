@@ -3,6 +3,7 @@
 The Dask tests use a real LocalCluster of two process workers (one thread each) and skip
 when Dask is not installed; the sweep file and the executor's own errors are tested without it.
 """
+import json
 import os
 import signal
 import subprocess
@@ -11,6 +12,7 @@ import threading
 import time
 from dataclasses import replace
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -18,8 +20,10 @@ from cli.main import main
 from data_gen import BUILTIN, generate
 from mpnode.base.errors import InputError
 from mpnode.data import write_trajectories
+from mpnode.model import Model
 from mpnode.runs.executors import open_executor, parse_scheduler
-from mpnode.runs.sweep import FINISHED, read_sweep, run_sweep, run_task
+from mpnode.runs.sweep import FINISHED, point_epochs, read_sweep, run_sweep, run_task
+from mpnode.training import state_path
 
 try:
     import distributed  # noqa: F401
@@ -115,6 +119,10 @@ def test_a_runs_key_changes_with_what_its_recipe_sets(data, monkeypatch):
     ('data = ["train.h5"]\n[[run]]\nname = "a"\n[[run]]\nname = "b"\nfrom = "a"\nmessage_dim = 7\n', "message_dim"),
     ('data = ["train.h5"]\n[train]\nepochs = -1\n', "epochs"),
     ('data = ["train.h5"]\nepochs = 3\n', "epochs"),
+    ('data = ["train.h5"]\ntest_points = 2\n', "test_points"),
+    ('data = ["train.h5"]\ntest = ["test.h5"]\ntest_points = -1\n', "test_points"),
+    ('data = ["train.h5"]\ntest = ["test.h5"]\ntest_points = 2\n[train]\nschedule = "cosine"\n', "test_points"),
+    ('data = ["train.h5"]\n[[run]]\nname = "a"\ntest = ["missing.h5"]\n', "test"),
 ])
 def test_a_bad_sweep_file_names_the_key(data, text, field):
     with pytest.raises(InputError, match=field):
@@ -263,3 +271,95 @@ def test_ctrl_c_leaves_every_finished_run_and_a_rerun_continues(data, farm, tmp_
     records = run_sweep(sweep, tmp_path, farm, progress=redone.append)
     assert all(r["status"] == "completed" for r in records.values())
     assert first[0] not in [r["name"] for r in redone]
+
+
+# ---- test points and resuming a killed training ----------------------------------------------
+POINTS = """
+data = ["train.h5"]
+test = ["test.h5"]
+[train]
+epochs = 6
+batch_size = 4
+[[run]]
+name = "base"
+test_points = 3
+[[run]]
+name = "plain"
+[[run]]
+name = "tuned"
+from = "base"
+epochs = 4
+test_points = 2
+"""
+
+
+def check_points(records, out):
+    base, plain, tuned = (records[n] for n in ("base", "plain", "tuned"))
+    assert [p["epoch"] for p in base["test_curve"]] == [0, 2, 4, 6] == point_epochs(6, 3)
+    assert [p["epoch"] for p in tuned["test_curve"]] == [0, 2, 4] and plain["test_curve"] == []
+    # the last point is the final model; a fine-tuned run's first point is its parent's model
+    assert base["test_curve"][-1]["nmse"] == base["test_nmse"]
+    assert tuned["test_curve"][0]["nmse"] == pytest.approx(base["test_nmse"], rel=1e-6)
+    # each point's model is kept beside the run's; nothing of the training under way is left
+    folder = out / "runs" / "base"
+    assert sorted(os.listdir(folder)) == ["model.h5", "model.h5.log.jsonl", "points", "result.json"]
+    for point in base["test_curve"]:
+        assert Model.load(folder / point["model"]).attrs["epoch"] == point["best_epoch"]
+
+
+def test_test_points_on_the_local_pool(data, tmp_path):
+    """A run with test points trains in segments, its best model evaluated after each; the
+    segments train exactly what one pass trains (the plateau schedule resumes bit for bit)."""
+    sweep = sweep_file(data, "points.toml", POINTS)
+    with open_executor(None, 2, one_thread=True) as farm:
+        records = run_sweep(sweep, tmp_path, farm)
+    check_points(records, tmp_path)
+    a, b = (Model.load(tmp_path / "runs" / n / "model.h5") for n in ("base", "plain"))
+    assert np.array_equal(a.theta, b.theta)
+
+
+@needs_dask
+def test_test_points_on_dask(data, farm, tmp_path):
+    """On Dask the run trains in a temporary folder and the worker sends the points' models back."""
+    records = run_sweep(sweep_file(data, "points.toml", POINTS), tmp_path, farm)
+    check_points(records, tmp_path)
+
+
+def test_a_killed_sweep_resumes_its_half_finished_training(data, tmp_path):
+    """Killed mid-training (the command and its pool process at once), a sweep run on the local
+    pool continues from its checkpoint next time: the log keeps the epochs before it, byte for
+    byte (a new start would rewrite them with other times), and the test points recorded stay."""
+    (data / "long.toml").write_text('data = ["train.h5"]\ntest = ["test.h5"]\n[train]\nepochs = 4000\n'
+                                    'checkpoint_seconds = 0.3\n[[run]]\nname = "long"\ntest_points = 4\n')
+    out = tmp_path / "out"
+    args = [sys.executable, "-c", "from cli.main import main; main()", "sweep", str(data / "long.toml"), "-o", str(out),
+            "--scheduler", "none", "--workers", "1"]
+    folder = out / "runs" / "long"
+    log, state = folder / "model.h5.log.jsonl", state_path(folder / "model.h5")
+    proc = subprocess.Popen(args, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline and proc.poll() is None:  # past the first test point (epoch 1000)
+            if (folder / "points" / "epoch-1000.h5").exists() and os.path.exists(state) \
+                    and len(log.read_text().splitlines()) > 1500:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, "the sweep finished before it could be killed: " + proc.stderr.read().decode()
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    with np.load(state) as checkpoint:
+        resumed_at = int(checkpoint["epoch"])
+    before = log.read_text().splitlines(keepends=True)
+    points = {p: (folder / "points" / p).read_bytes() for p in os.listdir(folder / "points")}
+    assert 1000 <= resumed_at < 4000 and not (folder / "result.json").exists()
+
+    again = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr[-3000:]
+    res = json.loads((folder / "result.json").read_text())
+    after = log.read_text().splitlines(keepends=True)
+    assert res["status"] == "completed" and res["epochs"] == 4000
+    assert [json.loads(line)["epoch"] for line in after] == list(range(4001))
+    assert after[:resumed_at + 1] == before[:resumed_at + 1]  # kept, not trained again
+    assert [p["epoch"] for p in res["test_curve"]] == [0, 1000, 2000, 3000, 4000]
+    assert all((folder / "points" / p).read_bytes() == blob for p, blob in points.items())

@@ -8,14 +8,18 @@
     seed = [0, 1]
 
 Each run is one task (`run_task`) on an mpnode.runs.executors Farm (a local process pool or
-Dask): it receives the data files' bytes (no shared filesystem is assumed), trains with the
-library function behind `mpnode train` / `finetune` (mpnode.runs) in a temporary folder,
-evaluates the best model, and returns the model file, its log and the evaluation.  The
-client (`run_sweep`) writes them under OUT/runs/NAME/ and rewrites OUT/summary.csv and
+Dask).  It trains with the library function behind `mpnode train` / `finetune` (mpnode.runs),
+evaluates the best model (with ``test_points``, also at evenly spaced epochs along the way)
+and returns the evaluation.  On the local pool it trains in the run's own folder OUT/runs/NAME/,
+so a run whose process was killed resumes from its checkpoint next time; on Dask it receives
+the data files' bytes (no shared filesystem is assumed), trains in a temporary folder and
+sends back the model file, its log and the models of its test points.  The client
+(`run_sweep`) writes the result under OUT/runs/NAME/ and rewrites OUT/summary.csv and
 OUT/summary.md as each run finishes; a run whose result is on disk with the same settings
 and data is not redone, so an interrupted sweep continues where it stopped.  A run that
 raises is reported in the summary (and redone next time) while the others go on; a
-fine-tune child starts when its parent has finished.
+fine-tune child starts when its parent has finished.  Runs declared in Python (the paper
+suite's) become a Sweep through `make_sweep`.
 """
 import csv
 import dataclasses
@@ -25,26 +29,30 @@ import itertools
 import json
 import math
 import os
+import shutil
 import tempfile
-import time
 from concurrent.futures import FIRST_COMPLETED, wait
 from concurrent.futures.process import BrokenProcessPool
 
 from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
 from mpnode.base.tomlfile import load_toml
-from mpnode.training import recipes
+from mpnode.training import recipes, state_path
+from mpnode.training.log import log_path
 
-from .run import MODEL_OPTIONS, OPTION_NAMES, parse_duration, split_options
+from .run import MODEL_OPTIONS, OPTION_NAMES, TRAIN_OPTIONS, parse_duration, split_options
 
 #: what a sweep file may hold at its top level
-TOP_KEYS = ("data", "test", "recipe", "train", "grid", "run")
+TOP_KEYS = ("data", "test", "test_points", "recipe", "train", "grid", "run")
 #: keys of a [[run]] table that are not training options
-RUN_KEYS = ("name", "from", "data", "refit_norm", "recipe")
+RUN_KEYS = ("name", "from", "data", "test", "test_points", "refit_norm", "recipe")
 #: times a run is resubmitted after the process running it died (Dask reschedules on its own)
 LOST_RETRIES = 2
 #: statuses of a finished training (fit's), as opposed to "failed" (the task raised) and "pending"
 FINISHED = ("completed", "time_limit", "diverged")
+#: a run's files in its folder (OUT/runs/NAME/): the model, and while it trains on the local pool,
+#: the key of the training under way (a rerun resumes it when the key is the same) and its test points
+MODEL, STARTED, POINTS = "model.h5", "started.json", "test_points.jsonl"
 
 
 @dataclasses.dataclass
@@ -60,13 +68,16 @@ class RunPlan:
     settings: str = ""  # what sets this run apart, for the summary
     parent_model: str = None  # where the parent's model file is on the client (for the model's attributes)
     key: str = ""  # digest of everything that decides the run (settings, data contents, parent's key)
+    test: list = None  # test files its best model is evaluated on
+    test_points: int = 0  # evaluations on them at evenly spaced epochs besides epoch 0 (0: at the end only)
+    folder: str = None  # where it trains: its folder on the client (local pool), or None (a temporary one)
 
 
 @dataclasses.dataclass
 class Sweep:
     path: str
     runs: list  # RunPlan, parents before children
-    test: list  # test files every run is evaluated on
+    test: list  # the sweep's test files (a run may have its own)
 
 
 # ---------------------------------------------------------------------------
@@ -85,16 +96,47 @@ def read_sweep(path):
     shared = _table(doc, "train", path)
     recipe = _text(doc.get("recipe", shared.pop("recipe", "auto")), path, "recipe")
     plans = _grid_runs(doc, shared, data, recipe, path) + _listed_runs(doc, shared, data, recipe, path, folder)
+    for p in plans:  # what a run does not set itself, the sweep sets
+        p.test = test if p.test is None else p.test
+        p.test_points = doc.get("test_points", 0) if p.test_points is None else p.test_points
+    return make_sweep(path, plans, test)
+
+
+def make_sweep(path, plans, test=()):
+    """The Sweep of ``plans`` (RunPlans: read from a file, or declared in Python as the paper
+    suite does): each checked, parents before children, each keyed.  ``path`` names the sweep
+    (the summary's title; test files are named relative to its folder)."""
     plans = _order(plans, path)
-    digests = {f: file_digest(f) for p in plans for f in p.data} | {f: file_digest(f) for f in test}
+    for p in plans:
+        _check_plan(p, path)
+    files = {f for p in plans for f in p.data + p.test}
+    digests = {f: file_digest(f) for f in sorted(files)}
     keys = {}
     for p in plans:
-        p.key = _digest({"options": p.options, "recipe": [p.recipe, recipes.tables(p.recipe)],
-                         "refit_norm": p.refit_norm,
-                         "data": [digests[f] for f in p.data], "test": [digests[f] for f in test],
-                         "parent": keys.get(p.parent)})
+        decided = {"options": p.options, "recipe": [p.recipe, recipes.tables(p.recipe)], "refit_norm": p.refit_norm,
+                   "data": [digests[f] for f in p.data], "test": [digests[f] for f in p.test],
+                   "parent": keys.get(p.parent)}
+        if p.test_points:  # only then: the keys of sweeps without test points stay what they were
+            decided["test_points"] = p.test_points
+        p.key = _digest(decided)
         keys[p.name] = p.key
-    return Sweep(path, plans, test)
+    return Sweep(path, plans, list(test))
+
+
+def _check_plan(p, path):
+    """InputError for a run that cannot run as declared (its options, its test points)."""
+    p.test = list(p.test or [])
+    where = f"run {p.name}"
+    split_options(p.options, f"{path}: {where}")
+    points = p.test_points or 0
+    if isinstance(points, bool) or not isinstance(points, int) or points < 0:
+        raise InputError(path, f"{where}.test_points", f"is {points!r}", "a whole number of evaluations >= 0")
+    if points and not p.test:
+        raise InputError(path, f"{where}.test_points", "needs test files", "a `test` list for the run or the sweep")
+    if points and p.options.get("schedule") == "cosine":
+        raise InputError(path, f"{where}.test_points", "cannot be used with the cosine schedule (the run trains "
+                         "in segments, and each would end the schedule)", "schedule plateau, or no test_points")
+    p.test_points = points
 
 
 def _files(doc, key, path, folder, required):
@@ -142,7 +184,7 @@ def _grid_runs(doc, shared, data, recipe, path):
         options = {**shared, **own}
         run_recipe = _text(options.pop("recipe", recipe), path, f"grid.recipe ({name})")
         plans.append(RunPlan(name, _options(options, path, f"grid ({name})"), data, run_recipe,
-                             settings=_describe(own)))
+                             settings=_describe(own), test_points=None))
     return plans
 
 
@@ -159,13 +201,16 @@ def _listed_runs(doc, shared, data, recipe, path, folder):
             raise InputError(path, f"{where}.name", f"is {name!r}", "a name for the run's folder (no '/')")
         parent = table.pop("from", None)
         files = _files(table, "data", path, folder, required=False) or data
-        table.pop("data", None)
+        tests = _files(table, "test", path, folder, required=False) if "test" in table else None
+        points = table.pop("test_points", None)
+        table.pop("data", None), table.pop("test", None)
         refit = bool(table.pop("refit_norm", False))
         run_recipe = _text(table.pop("recipe", recipe), path, f"{where}.recipe")
         base = shared if parent is None else {k: v for k, v in shared.items() if k not in MODEL_OPTIONS}
         options = _options({**base, **table}, path, f"{where} ({name})", finetune=parent is not None)
         settings = _describe(table) + (f" from {parent}" if parent else "")
-        plans.append(RunPlan(name, options, files, run_recipe, parent, refit, settings.strip()))
+        plans.append(RunPlan(name, options, files, run_recipe, parent, refit, settings.strip(), test=tests,
+                             test_points=points))
     return plans
 
 
@@ -241,38 +286,131 @@ def run_task(plan, test_names, parent, *files):
     """Train ``plan`` (a RunPlan as a dict) and evaluate it; runs wherever the farm puts it.
 
     parent : the parent's model file (bytes, or a path on this machine) or None;
-    files : the plan's data files then the test files, each bytes or a local path.
-    Returns {"model": bytes, "log": bytes, "result": dict} (result: see `_result`).
+    files : the plan's data files then its test files, each bytes or a local path.
+    The run trains in ``plan["folder"]`` (resuming the training under way there when it has
+    the same key: `_prepare`), or in a temporary folder whose files are sent back.
+    Returns {"result": dict (see `_result`)}, and with a temporary folder "files":
+    {name in the run's folder: bytes} (the model, its log, the models of the test points).
     """
     from mpnode.evaluation.evaluate import evaluate
-    from mpnode.training.log import log_path
 
     from . import run as runs
 
     with tempfile.TemporaryDirectory(prefix="mpnode-sweep-") as tmp:
         local = [_local(f, os.path.join(tmp, f"data{i}.h5")) for i, f in enumerate(files)]
         n_data = len(local) - len(test_names)
-        paths, tests = local[:n_data], local[n_data:]
+        paths = local[:n_data]
         datasets = [_read(p, name) for p, name in zip(paths, plan["data"])]
-        output = os.path.join(tmp, "model.h5")
-        start = time.perf_counter()
-        if plan["parent"] is None:
-            result = runs.train(paths, output, plan["options"], recipe_name=plan["recipe"], datasets=datasets,
-                                names=plan["data"])
-        else:
-            model = _local(parent, os.path.join(tmp, "parent.h5"))
-            result = runs.finetune(model, paths, output, plan["options"], refit_norm=plan["refit_norm"],
-                                   recipe_name=plan["recipe"], datasets=datasets, names=plan["data"],
-                                   parent_name=plan["parent_model"])
-        seconds = time.perf_counter() - start
+        tests = [_read(p, name) for p, name in zip(local[n_data:], test_names)]
+        if plan["parent"] is not None:
+            parent = _local(parent, os.path.join(tmp, "parent.h5"))
+        folder = plan["folder"] or os.path.join(tmp, "run")
+        resume = _prepare(folder, plan)
+
+        def segment(epochs, resume):  # train (on) to ``epochs``
+            options, output = {**plan["options"], "epochs": epochs}, os.path.join(folder, MODEL)
+            common = dict(recipe_name=plan["recipe"], resume=resume, datasets=datasets, names=plan["data"])
+            if plan["parent"] is None:
+                return runs.train(paths, output, options, **common)
+            return runs.finetune(parent, paths, output, options, refit_norm=plan["refit_norm"],
+                                 parent_name=plan["parent_model"], **common)
+
+        result, points = _train(plan, segment, resume, tests, test_names, folder)
         val = result.validation
-        test = [(name, evaluate(result.model, _read(p, name), source=name, check_stability=False))
-                for name, p in zip(test_names, tests)]
-        with open(output, "rb") as f:
-            model_bytes = f.read()
-        with open(log_path(output), "rb") as f:
-            log_bytes = f.read()
-    return {"model": model_bytes, "log": log_bytes, "result": _result(plan, result, seconds, val, test)}
+        test = [(name, evaluate(result.model, t, source=name, check_stability=False))
+                for name, t in zip(test_names, tests)]
+        answer = {"result": _result(plan, result, val, test, points)}
+        if plan["folder"] is None:
+            answer["files"] = _run_files(folder)
+    return answer
+
+
+def point_epochs(epochs, test_points):
+    """The epochs a run trains to in turn: with test points, 0 and ``test_points`` evenly spaced
+    epochs up to ``epochs`` (its best model is evaluated at each), else ``epochs`` alone."""
+    if not test_points:
+        return [epochs]
+    return sorted({0} | {round(epochs * k / test_points) for k in range(1, test_points + 1)})
+
+
+def _train(plan, segment, resume, tests, test_names, folder):
+    """Train to each of `point_epochs` in turn (resuming between them), recording a test point
+    after each; points already recorded in ``folder`` are kept.  Returns (TrainResult, points)."""
+    points = _read_points(folder) if resume else []
+    done = {p["epoch"] for p in points}
+    result = None
+    for stop in point_epochs(plan["options"].get("epochs", TRAIN_OPTIONS["epochs"]), plan["test_points"]):
+        if stop in done:
+            continue
+        result = segment(stop, resume)
+        resume = True
+        if plan["test_points"]:
+            points.append(_test_point(result, tests, test_names, folder))
+        if result.status != "completed":
+            break
+    if result is None:  # stopped after its last point was recorded: the finished training, as it is
+        result = segment(plan["options"].get("epochs", TRAIN_OPTIONS["epochs"]), True)
+    return result, points
+
+
+def _test_point(result, tests, test_names, folder):
+    """Evaluate the best model so far on the test files; keep it as points/epoch-E.h5 and the
+    point as a line of the folder's POINTS file (the line last: a line means its model is there)."""
+    from mpnode.evaluation.evaluate import evaluate
+
+    evals = [evaluate(result.model, t, source=name, check_stability=False) for t, name in zip(tests, test_names)]
+    point = {"epoch": result.epoch, "best_epoch": result.best_epoch,
+             "nmse": _mean([(r.n_trajectories, r.nmse) for r in evals]),
+             "nmse_last": _mean([(r.n_trajectories, r.nmse_last) for r in evals]),
+             "model": f"points/epoch-{result.epoch}.h5"}
+    os.makedirs(os.path.join(folder, "points"), exist_ok=True)
+    result.model.save(os.path.join(folder, point["model"]))
+    with open(os.path.join(folder, POINTS), "a") as f:
+        f.write(json.dumps(point, default=_json_default) + "\n")
+    return point
+
+
+def _read_points(folder):
+    """The test points recorded in ``folder`` (a line cut by a kill is dropped)."""
+    points = []
+    try:
+        with open(os.path.join(folder, POINTS)) as f:
+            for line in f:
+                if line.endswith("\n"):
+                    points.append(json.loads(line))
+    except FileNotFoundError:
+        pass
+    return points
+
+
+def _prepare(folder, plan):
+    """Whether the run resumes the training under way in ``folder``: one with the same key that
+    left a checkpoint.  Otherwise the folder is emptied and marked as this training's."""
+    marker = os.path.join(folder, STARTED)
+    try:
+        with open(marker) as f:
+            same = json.load(f).get("key") == plan["key"]
+    except (FileNotFoundError, json.JSONDecodeError):
+        same = False
+    if same and os.path.exists(state_path(os.path.join(folder, MODEL))):
+        return True
+    shutil.rmtree(folder, ignore_errors=True)
+    os.makedirs(folder)
+    with atomic_path(marker) as tmp, open(tmp, "w") as f:
+        json.dump({"name": plan["name"], "key": plan["key"]}, f)
+    return False
+
+
+def _run_files(folder):
+    """{name: bytes} of what a finished run keeps in its folder: the model, its log, the points' models."""
+    names = [MODEL, os.path.basename(log_path(MODEL))]
+    if os.path.isdir(os.path.join(folder, "points")):
+        names += [f"points/{n}" for n in sorted(os.listdir(os.path.join(folder, "points")))]
+    out = {}
+    for name in names:
+        with open(os.path.join(folder, name), "rb") as f:
+            out[name] = f.read()
+    return out
 
 
 def _read(path, name):
@@ -302,16 +440,17 @@ def _mean(pairs):
     return sum(n * v for n, v in pairs) / total if total else None
 
 
-def _result(plan, result, seconds, val, test):
+def _result(plan, result, val, test, points):
     return {"name": plan["name"], "key": plan["key"], "status": result.status, "message": result.message,
             "epochs": result.epoch, "best_epoch": result.best_epoch, "best_val_loss": result.best_val_loss,
-            "seconds": seconds, "val_nmse": _mean([(f["trajectories"], f["nmse"]) for f in val]), "val": val,
+            "seconds": result.seconds, "val_nmse": _mean([(f["trajectories"], f["nmse"]) for f in val]), "val": val,
             "test_nmse": _mean([(r.n_trajectories, r.nmse) for _, r in test]),
             "test_nmse_last": _mean([(r.n_trajectories, r.nmse_last) for _, r in test]),
             "test": [{"file": name, "trajectories": r.n_trajectories, "nmse": r.nmse, "nmse_last": r.nmse_last,
                       "blown_up": r.n_bad} for name, r in test],
+            "test_curve": points,
             "options": {k: v for k, v in plan["options"].items()}, "recipe": plan["recipe"],
-            "from": plan["parent"], "data": plan["data"]}
+            "from": plan["parent"], "data": plan["data"], "test_points": plan["test_points"]}
 
 
 # ---------------------------------------------------------------------------
@@ -329,7 +468,7 @@ def load_finished(out, plan):
     except (FileNotFoundError, json.JSONDecodeError):
         return None
     ok = res.get("key") == plan.key and res.get("status") in FINISHED
-    return res if ok and os.path.exists(os.path.join(run_dir(out, plan.name), "model.h5")) else None
+    return res if ok and os.path.exists(os.path.join(run_dir(out, plan.name), MODEL)) else None
 
 
 def run_sweep(sweep, out, farm, progress=None):
@@ -338,13 +477,13 @@ def run_sweep(sweep, out, farm, progress=None):
     progress : called with each run's record (dict with name, status, ...) as it finishes,
     or None.  Returns {name: record} for every run (status "failed" with an "error" when its
     task raised; "skipped" when its parent failed).  Ctrl-C: cancels what is running; what
-    finished is on disk.
+    finished is on disk, and on the local pool a training under way resumes next time.
     """
     os.makedirs(os.path.join(out, "runs"), exist_ok=True)
     records = {p.name: load_finished(out, p) or {"name": p.name, "status": "pending"} for p in sweep.runs}
     todo = {p.name: p for p in sweep.runs if records[p.name]["status"] == "pending"}
     write_summary(out, sweep, records)
-    tests = [os.path.relpath(t, os.path.dirname(os.path.abspath(sweep.path))) for t in sweep.test]
+    base = os.path.dirname(os.path.abspath(sweep.path))
     shared = {}
 
     def ref(path):  # what a task gets for a file: a path in the pool, the bytes (sent once) on Dask
@@ -358,14 +497,16 @@ def run_sweep(sweep, out, farm, progress=None):
     def submit(p):
         parent = None
         if p.parent is not None:
-            parent = os.path.join(run_dir(out, p.parent), "model.h5")
+            parent = os.path.join(run_dir(out, p.parent), MODEL)
             if farm.is_dask:
                 with open(parent, "rb") as f:
                     parent = f.read()
         plan = dataclasses.asdict(p)
         if p.parent is not None:
-            plan["parent_model"] = os.path.abspath(os.path.join(run_dir(out, p.parent), "model.h5"))
-        return farm.submit(run_task, plan, tests, parent, *[ref(f) for f in p.data + sweep.test])
+            plan["parent_model"] = os.path.abspath(os.path.join(run_dir(out, p.parent), MODEL))
+        plan["folder"] = None if farm.is_dask else os.path.abspath(run_dir(out, p.name))  # a pool runs here
+        tests = [os.path.relpath(t, base) for t in p.test]
+        return farm.submit(run_task, plan, tests, parent, *[ref(f) for f in p.data + p.test])
 
     running, lost = {}, {}
     # the pool gets no more than it runs (a queued task would start after Ctrl-C); Dask queues them itself
@@ -421,19 +562,27 @@ def _announce(out, sweep, records, name, progress):
 
 
 def _keep(out, answer):
-    """Write a finished run's model, log and result (each atomically; the result last, so a
-    result on disk means the model beside it is complete).  An interrupted training
-    (Ctrl-C reached the worker) is not kept: it is redone next time."""
+    """Write a finished run's result, and the files a worker sent back from its temporary folder
+    (each atomically; the result last, so a result on disk means the model beside it is
+    complete); then the files of the training under way go.  An interrupted training (Ctrl-C
+    reached the worker) is not kept: it is redone next time, resumed where it trained here."""
     res = answer["result"]
     if res["status"] not in FINISHED:
         return {"name": res["name"], "status": "pending"}
     folder = run_dir(out, res["name"])
-    os.makedirs(folder, exist_ok=True)
-    for name, blob in (("model.h5", answer["model"]), ("model.h5.log.jsonl", answer["log"])):
-        with atomic_path(os.path.join(folder, name)) as tmp, open(tmp, "wb") as f:
+    if "files" in answer:  # trained elsewhere: the folder becomes what the worker sent back
+        shutil.rmtree(folder, ignore_errors=True)
+    for name, blob in answer.get("files", {}).items():
+        path = os.path.join(folder, name)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
             f.write(blob)
+    os.makedirs(folder, exist_ok=True)
     with atomic_path(os.path.join(folder, "result.json")) as tmp, open(tmp, "w") as f:
         json.dump(res, f, indent=1, default=_json_default)
+    for name in (STARTED, POINTS, os.path.basename(state_path(MODEL))):
+        if os.path.exists(os.path.join(folder, name)):
+            os.remove(os.path.join(folder, name))
     return res
 
 
