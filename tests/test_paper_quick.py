@@ -50,7 +50,7 @@ def test_every_run_completed(quick_run):
     for path in (quick_run / "work" / "runs").glob("*/result.json"):
         res = json.loads(path.read_text())
         assert res["status"] == "completed", (path, res["message"])
-        assert res["epochs"] == res["spec"]["epochs"]
+        assert res["epochs"] == res["options"]["epochs"]
 
 
 def test_aggregation_runs_use_the_recipes_aggregations(quick_run):

@@ -4,28 +4,28 @@ An experiment module (exp_*.py) declares
 
 - ``NAME``, ``TITLE``;
 - ``runs(mode)``: the training runs it needs (`RunSpec`; a run another experiment also
-  declares is trained once -- same name, same settings);
+  declares is trained once -- same name, same settings; runs_shared.py defines those);
 - ``analyse(ctx)``: evaluates the trained models, draws its figures and returns its
   section of RESULTS.md (markdown), and the numbers behind it (a dict, saved as JSON).
 
-`main` trains the runs of the chosen experiments on a pool of processes (one numba thread
-each: two single-threaded trainings use the 2 cores better than one two-threaded one) or, with
-``--scheduler``, on Dask (mpnode.runs.executors; the workers must see OUT/work, e.g. on this machine
-or on a shared filesystem),
-runs the analyses in order, and assembles RESULTS.md from every section present.
+`main` hands the runs of the chosen experiments to the library's sweep (mpnode.runs.sweep:
+keys, parents before fine-tuned children, test points, results on disk), which trains them on
+a pool of processes (one numba thread each: two single-threaded trainings use the 2 cores
+better than one two-threaded one) or, with ``--scheduler``, on Dask (mpnode.runs.executors);
+then it runs the analyses in order and assembles RESULTS.md from every section present.
 
-Everything is cached under OUT/work (data files, models, logs) and keyed by the settings
-that made it, so a rerun only redoes what changed (``--force``: everything).
+Everything is cached under OUT/work (data files; runs/NAME/ with the model, its log, its
+test points and result.json, each run keyed by everything that decided it), so a rerun only
+redoes what changed (``--force``: everything), and on the pool a training that was killed
+resumes from its checkpoint.
 """
 import argparse
-import concurrent.futures as cf
-import contextlib
 import dataclasses
-import hashlib
 import json
 import math
 import os
 import platform
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -141,14 +141,14 @@ def load_data(work, spec):
 
 
 # ---------------------------------------------------------------------------
-# Training runs
+# Training runs: declared here, trained by the library's sweep (mpnode.runs.sweep)
 # ---------------------------------------------------------------------------
 @dataclass(frozen=True)
 class RunSpec:
     """One training run (scratch, or finetuning the model of run ``init_from``).
 
-    test / test_points: evaluate the best-validation model on ``test`` at ``test_points``
-    evenly spaced epochs (training resumes between them) -- the test-error curve of Fig. 5.
+    test / test_points: evaluate the best-validation model on ``test`` at epoch 0 and at
+    ``test_points`` evenly spaced epochs (the sweep's test points) -- the test-error curve of Fig. 5.
     kind, aggregation: the model (mpnode.runs options; aggregation None: the recipe's);
     recipe: "paper" (the paper's settings) or "auto"; extra: further `mpnode train` options
     as (name, value) pairs, e.g. (("schedule", "cosine"), ("val_graphs", 1)).
@@ -183,131 +183,19 @@ class RunSpec:
                 opts["aggregation"] = self.aggregation
         return opts
 
-    @property
-    def key(self):
-        """A digest of the settings that differ from the defaults (so a new field keeps old caches
-        valid), and of what recipe auto changes from the paper's for this run's system (so that a
-        new recipe retrains the runs it concerns, and only those)."""
-        changed = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                   if getattr(self, f.name) != f.default}
-        recipe_changes = self.recipe_changes()
-        if recipe_changes:
-            changed["recipe_changes"] = recipe_changes
-        return hashlib.sha1(json.dumps(changed, sort_keys=True, default=str).encode()).hexdigest()[:12]
+    def plan(self, work):
+        """This run as a run of the library's sweep (its data files those of ``work``)."""
+        from mpnode.runs.sweep import RunPlan
 
-    def recipe_changes(self):
-        """The settings recipe ``self.recipe`` takes differently from the paper's recipe."""
-        from data_gen import load_scene
-        from mpnode.training import recipes
-
-        if self.recipe == "paper":
-            return {}
-        own = dict(self.extra)
-        if self.init_from:
-            return {k: v for k, v in recipes.finetune_recipe(self.recipe, self.kind).items() if k not in own}
-        system = load_scene(self.train[0].scene).system
-        paper = recipes.recipe("paper", system, self.kind)
-        return {k: v for k, v in recipes.recipe(self.recipe, system, self.kind).items()
-                if paper.get(k) != v and k not in own}
+        return RunPlan(self.name, self.options(), [str(data_path(work, d)) for d in self.train], self.recipe,
+                       parent=self.init_from, settings=", ".join(d.describe() for d in self.train),
+                       test=[str(data_path(work, self.test))] if self.test is not None else [],
+                       test_points=self.test_points)
 
 
-def run_dir(work, name):
-    return Path(work) / "runs" / name
-
-
-def load_result(work, name):
-    """The result.json of a finished run (dict), or None."""
-    p = run_dir(work, name) / "result.json"
-    return json.loads(p.read_text()) if p.exists() else None
-
-
-def load_model(work, name):
-    from mpnode.model import Model
-
-    return Model.load(run_dir(work, name) / "model.h5")
-
-
-def train_run(spec, work):
-    """Train ``spec`` with the library function behind `mpnode train` / `finetune` and write
-    runs/NAME/{model.h5, model.h5.log.jsonl, result.json}; return the result."""
-    from mpnode import runs
-    from mpnode.base.atomic import atomic_path
-    from mpnode.evaluation.evaluate import evaluate
-    from mpnode.training import state_path
-    from mpnode.training.log import log_path, read_log
-
-    out = run_dir(work, spec.name)
-    out.mkdir(parents=True, exist_ok=True)
-    model_file = out / "model.h5"
-    for p in (model_file, Path(log_path(model_file)), Path(state_path(model_file)), out / "result.json"):
-        p.unlink(missing_ok=True)
-    paths = [make_data(work, d) for d in spec.train]
-    datasets = runs.read_all(paths)
-    test = load_data(work, spec.test) if spec.test is not None else None
-    stops = [spec.epochs]
-    if spec.test_points:
-        stops = sorted({int(round(spec.epochs * k / spec.test_points)) for k in range(1, spec.test_points + 1)})
-    t0 = time.perf_counter()
-    mark = {"next": 0.0}
-
-    def progress(rec):
-        if rec["epoch"] >= mark["next"] * spec.epochs:
-            mark["next"] += 0.25
-            print(f"    {spec.name}: epoch {rec['epoch']}/{spec.epochs}, val loss {rec['val_loss']:.4g}, "
-                  f"{time.perf_counter() - t0:.0f} s", flush=True)
-
-    def segment(epochs, resume):
-        opts = {**spec.options(), "epochs": epochs}
-        if spec.init_from:
-            return runs.finetune(run_dir(work, spec.init_from) / "model.h5", paths, model_file, opts,
-                                 recipe_name=spec.recipe, resume=resume, progress=progress, datasets=datasets)
-        return runs.train(paths, model_file, opts, recipe_name=spec.recipe, resume=resume, progress=progress,
-                          datasets=datasets)
-
-    curve, curve_paper = [], []
-
-    def test_point(epoch, model):
-        ev = evaluate(model, test, check_stability=False)
-        curve.append([epoch, ev.nmse])
-        curve_paper.append([epoch, paper_units(test, ev.predictions)])
-
-    if test is not None:  # the test curve starts at the initial weights (epoch 0)
-        test_point(0, segment(0, False).model)
-    result = None
-    for i, stop in enumerate(stops):
-        result = segment(stop, resume=test is not None or i > 0)
-        if test is not None:
-            test_point(result.epoch, result.model)
-        if result.status != "completed":
-            break
-    history = read_log(log_path(model_file))
-    res = {"name": spec.name, "key": spec.key, "spec": dataclasses.asdict(spec),
-           "init_key": (load_result(work, spec.init_from) or {}).get("key") if spec.init_from else None,
-           "train_seconds": result.seconds,
-           "train_data": [d.describe() for d in spec.train],
-           "train_trajectories": int(sum(d.n_trajectories for d in datasets)),
-           "status": result.status, "message": result.message, "epochs": result.epoch,
-           "best_epoch": result.best_epoch, "best_val_loss": result.best_val_loss,
-           "seconds": time.perf_counter() - t0,
-           "history": [{k: r.get(k) for k in ("epoch", "train_loss", "val_loss", "window", "lr", "elapsed")}
-                       for r in history],
-           "test_curve": curve, "test_curve_paper_units": curve_paper}
-    with atomic_path(out / "result.json") as tmp:
-        Path(tmp).write_text(json.dumps(res, default=_json_default))
-    return res
-
-
-def _json_default(v):
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    return str(v)
-
-
-def ensure_runs(specs, work, jobs=2, force=False, scheduler=None):
-    """Train every run of ``specs`` whose cached result is missing or was made with other settings,
-    ``jobs`` at a time on a local pool (one numba thread each), or on the Dask ``scheduler``."""
+def declared(specs):
+    """{name: RunSpec} of ``specs``; ValueError for a name declared twice with other settings or a
+    run starting from a run no experiment declares."""
     by_name = {}
     for s in specs:
         if s.name in by_name and by_name[s.name] != s:
@@ -316,79 +204,77 @@ def ensure_runs(specs, work, jobs=2, force=False, scheduler=None):
     for s in by_name.values():
         if s.init_from and s.init_from not in by_name:
             raise ValueError(f"run {s.name} starts from {s.init_from!r}, which no experiment declares")
-    todo = {n: s for n, s in by_name.items() if force or (load_result(work, n) or {}).get("key") != s.key}
-    changed = True
-    while changed:  # a run fine-tuned from a model that is (re)trained, or was made from another one, is redone
-        changed = False
-        for n, s in by_name.items():
-            if n in todo or not s.init_from:
-                continue
-            parent_key = (load_result(work, s.init_from) or {}).get("key")
-            if s.init_from in todo or load_result(work, n).get("init_key") != parent_key:
-                todo[n] = s
-                changed = True
+    return by_name
+
+
+def run_dir(work, name):
+    return Path(work) / "runs" / name
+
+
+def train_runs(specs, work, jobs=2, force=False, scheduler=None):
+    """Train every run of ``specs`` whose result in WORK/runs is missing or was made otherwise, on the
+    library's sweep: ``jobs`` at a time on a local pool (one numba thread each, a run killed there
+    resuming from its checkpoint next time) or on the Dask ``scheduler``.  Runs others start from
+    go first, then the longest (epochs x trajectories as a rough cost), so the pool does not end
+    on one long run.  Exits naming the runs that failed."""
+    from mpnode.runs.executors import open_executor
+    from mpnode.runs.sweep import FINISHED, load_finished, make_sweep, run_sweep
+
+    by_name = declared(specs)
+    parents = {s.init_from for s in by_name.values()}
+    order = sorted(by_name.values(), key=lambda s: (s.name not in parents,
+                                                    -s.epochs * sum(d.trajectories for d in s.train)))
+    sweep = make_sweep(str(Path(work) / "paper-suite"), [s.plan(work) for s in order])
+    if force:
+        for p in sweep.runs:
+            shutil.rmtree(run_dir(work, p.name), ignore_errors=True)
+    todo = [p.name for p in sweep.runs if load_finished(work, p) is None]
     if not todo:
         return
-    with _farm(jobs, scheduler) as pool:
-        if pool is not None:
-            jobs = pool.workers
-        print(f"training {len(todo)} run(s) ({jobs} at a time): {', '.join(todo)}", flush=True)
-        _train_all(todo, by_name, work, pool, jobs)
-
-
-@contextlib.contextmanager
-def _farm(jobs, scheduler):
-    from mpnode.runs.executors import open_executor
-
-    if jobs == 1 and scheduler in (None, "", "none"):
-        yield None
-        return
-    with open_executor(scheduler, jobs, one_thread=True) as farm:
-        if farm.is_dask:  # workers elsewhere cannot import this script's folder: send them this module
-            farm.client.upload_file(str(HERE / "common.py"))
-        yield farm
-
-
-def _train_all(todo, by_name, work, pool, jobs):
-    done_names = set(by_name) - set(todo)
     started = time.perf_counter()
-    running = {}
-    try:
-        while todo or running:
-            ready = [s for s in todo.values() if not s.init_from or s.init_from in done_names]
-            # runs others start from first, then the longest (epochs x trajectories as a rough cost),
-            # so the pool does not end on one long run
-            parents = {t.init_from for t in todo.values()}
-            ready.sort(key=lambda s: (s.name not in parents, -s.epochs * sum(d.trajectories for d in s.train)))
-            for s in ready:
-                if pool is None:
-                    print(f"  start {s.name}", flush=True)
-                    _report(train_run(s, work), started, len(done_names) + 1, len(by_name))
-                    done_names.add(s.name)
-                    del todo[s.name]
-                elif len(running) < jobs:
-                    print(f"  start {s.name}", flush=True)
-                    running[pool.submit(train_run, s, work)] = s
-                    del todo[s.name]
-            if pool is None and not ready or pool is not None and not running:
-                raise RuntimeError("runs wait on runs that cannot start: " + ", ".join(todo))
-            if pool is None:
-                continue
-            finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
-            for fut in finished:
-                s = running.pop(fut)
-                res = fut.result()
-                done_names.add(s.name)
-                _report(res, started, len(done_names), len(by_name))
-    finally:
-        for fut in running:
-            fut.cancel()
+    with open_executor(scheduler, jobs, one_thread=True) as farm:
+        print(f"training {len(todo)} run(s) ({farm.workers} at a time): {', '.join(todo)}", flush=True)
+        done = []
+
+        def report(r):
+            done.append(r)
+            what = (f"{r['epochs']} epochs, best val loss {r['best_val_loss']:.4g} (epoch {r['best_epoch']}), "
+                    f"{r['seconds']:.0f} s" if r["status"] in FINISHED else r.get("error"))
+            print(f"  [{len(done)}/{len(todo)}] {r['name']}: {r['status']}, {what} "
+                  f"[{time.perf_counter() - started:.0f} s in all]", flush=True)
+
+        records = run_sweep(sweep, work, farm, progress=report)
+    failed = [r for r in records.values() if r["status"] not in FINISHED]
+    if failed:
+        sys.exit("runs did not finish (see work/summary.md): "
+                 + "; ".join(f"{r['name']}: {r['status']} {r.get('error') or ''}" for r in failed))
 
 
-def _report(res, started, k, n):
-    print(f"  [{k}/{n}] {res['name']}: {res['status']}, {res['epochs']} epochs, best val loss "
-          f"{res['best_val_loss']:.4g} (epoch {res['best_epoch']}), {res['seconds']:.0f} s "
-          f"[{time.perf_counter() - started:.0f} s in all]", flush=True)
+def read_run(work, spec, test=None):
+    """A finished run as the analyses read it: the sweep's result.json with the run's declaration
+    (``spec``), its training log (``history``), its training data, and its test curve as
+    [[epoch, nMSE], ...] and, evaluated from each point's model on ``test`` (the Trajectories of
+    spec.test), in the paper's units (`paper_units`)."""
+    from mpnode.model import Model
+    from mpnode.training.log import log_path, read_log
+
+    folder = run_dir(work, spec.name)
+    res = json.loads((folder / "result.json").read_text())
+    res.update(spec=dataclasses.asdict(spec), history=read_log(log_path(folder / "model.h5")),
+               train_data=[d.describe() for d in spec.train],
+               train_trajectories=sum(d.trajectories for d in spec.train))
+    points = res.pop("test_curve")
+    res["test_curve"] = [[p["epoch"], p["nmse"]] for p in points]
+    res["test_curve_paper_units"] = [
+        [p["epoch"], paper_units(test, evaluate_nmse(Model.load(folder / p["model"]), test).predictions)]
+        for p in points]
+    return res
+
+
+def load_model(work, name):
+    from mpnode.model import Model
+
+    return Model.load(run_dir(work, name) / "model.h5")
 
 
 # ---------------------------------------------------------------------------
@@ -396,16 +282,24 @@ def _report(res, started, k, n):
 # ---------------------------------------------------------------------------
 @dataclass
 class Context:
-    """What the analyses share; models and data files are read once (the analyses only copy them)."""
+    """What the analyses share; results, models and data files are read once (the analyses only
+    copy them).  specs: every run any experiment declares, by name."""
 
     mode: Mode
     out: Path
     work: Path
     figures: Path
+    specs: dict = field(default_factory=dict)
     _read: dict = field(default_factory=dict)
 
     def result(self, name):
-        return load_result(self.work, name)
+        """The run's result (`read_run`), or None when it has not finished."""
+        if ("result", name) not in self._read:
+            spec, res = self.specs[name], None
+            if (run_dir(self.work, name) / "result.json").exists():
+                res = read_run(self.work, spec, self.data(spec.test) if spec.test is not None else None)
+            self._read["result", name] = res
+        return self._read["result", name]
 
     def model(self, name):
         if ("model", name) not in self._read:
@@ -498,6 +392,38 @@ def curve(res, key):
     return np.array([r["epoch"] for r in h]), np.array([r[key] for r in h], dtype=float)
 
 
+def model_curve(res, key="test_curve"):
+    """A test curve (``key``: test_curve in nMSE, test_curve_paper_units in the paper's units) as
+    [[epoch the evaluated model was trained to, error], ...].
+
+    A point evaluated at epoch e is the best-validation model at e, i.e. the weights of the last
+    strict validation improvement at or before e (fit's rule).  A scratch run's epoch-0 point is
+    dropped (`test_curve`).
+    """
+    best, best_at, trained_to = float("inf"), 0, {}
+    for r in res["history"]:
+        if r["val_loss"] is not None and r["val_loss"] < best:
+            best, best_at = r["val_loss"], r["epoch"]
+        trained_to[r["epoch"]] = best_at
+    return [[trained_to.get(int(e), int(e)), float(v)] for e, v in zip(*test_curve(res, key))]
+
+
+def efficiency(curve):
+    """(min test error, first epoch reaching it, their product) of a test curve [[epoch, error], ...]:
+    the paper's Table 2 metric (lower is better on both counts)."""
+    c = np.asarray(curve, dtype=float)
+    i = int(np.argmin(c[:, 1]))
+    return float(c[i, 1]), int(c[i, 0]), float(c[i, 1] * max(c[i, 0], 1))
+
+
+def first_epoch_below(curve, level):
+    """The first evaluated epoch whose test error is <= level (None: never)."""
+    for e, v in curve:
+        if v <= level:
+            return int(e)
+    return None
+
+
 def test_curve(res, key="test_curve"):
     """(epochs, test error) of a run's test curve (``key``: test_curve in nMSE, test_curve_paper_units)
     at its evaluation epochs; a scratch run's epoch-0 point (evaluated before fit fitted the
@@ -530,10 +456,10 @@ def run_line(res):
     bits = [f"{res['train_trajectories']} trajectories ({', '.join(res['train_data'])})",
             f"{res['epochs']} epochs" + (f" (curriculum {s['curriculum']} x {s['curriculum_epochs']})"
                                          if s["curriculum"] else ""),
-            f"seed {s['seed']}", f"lr {s.get('lr', 1e-3):g}",
+            f"seed {s['seed']}", f"lr {s['lr']:g}",
             (f"dm {s['message_dim']}" + (", zero messages" if s["zero_messages"] else "")
-             if s.get("kind", "mpnode") == "mpnode" else f"kind {s['kind']}"),
-            f"{res.get('train_seconds', res['seconds']) / 60:.1f} min"]
+             if s["kind"] == "mpnode" else f"kind {s['kind']}"),
+            f"{res['seconds'] / 60:.1f} min"]
     if s["init_from"]:
         bits.append(f"from {s['init_from']}")
     if res["status"] == "time_limit":
@@ -556,11 +482,11 @@ def parse_args(argv, description):
     p.add_argument("--out", type=Path, default=None,
                    help="where RESULTS.md, figures/ and work/ go (default: benchmarks/paper for the full "
                         "run, benchmarks/paper/short or benchmarks/paper/quick for the others)")
-    p.add_argument("--jobs", type=int, default=2, help="trainings at once (each single-threaded; 1: in-process)")
+    p.add_argument("--jobs", type=int, default=2, help="trainings at once on the local pool (each single-threaded)")
     p.add_argument("--force", action="store_true", help="retrain and regenerate even what is cached")
     p.add_argument("--scheduler", default=os.environ.get("MPNODE_SCHEDULER"),
                    help="run data generation and trainings on Dask: local, tcp://HOST:8786 or a scheduler file "
-                        "(default $MPNODE_SCHEDULER, else the local pool); the workers must see OUT/work")
+                        "(default $MPNODE_SCHEDULER, else the local pool); a training stopped on Dask starts over")
     args = p.parse_args(argv)
     args.tier = "quick" if args.quick else "short" if args.short else "full"
     if args.out is None:
@@ -572,11 +498,14 @@ def main(experiments, argv=None, description="MP-NODE paper suite"):
     """Train the runs of ``experiments`` (module names), analyse them, write OUT/RESULTS.md."""
     import importlib
 
+    from mpnode.runs.sweep import json_default
+
     args = parse_args(argv, description)
     mode = Mode(args.tier)
     out = args.out.resolve()
     work = out / "work"
-    ctx = Context(mode, out, work, out / "figures")
+    every = declared(s for name in EXPERIMENTS for s in importlib.import_module(name).runs(mode))
+    ctx = Context(mode, out, work, out / "figures", every)
     modules = [importlib.import_module(name) for name in experiments]
     t0 = time.perf_counter()
     specs = [s for m in modules for s in m.runs(mode)]
@@ -590,7 +519,7 @@ def main(experiments, argv=None, description="MP-NODE paper suite"):
         t = time.perf_counter()
         make_data(work, d, workers=2, scheduler=args.scheduler)
         print(f"data [{i}/{len(missing)}] {d.describe()}: {time.perf_counter() - t:.1f} s", flush=True)
-    ensure_runs(specs, work, jobs=args.jobs, force=args.force, scheduler=args.scheduler)
+    train_runs(specs, work, jobs=args.jobs, force=args.force, scheduler=args.scheduler)
     (out / "sections").mkdir(parents=True, exist_ok=True)
     (out / "results").mkdir(parents=True, exist_ok=True)
     for m in modules:
@@ -598,7 +527,7 @@ def main(experiments, argv=None, description="MP-NODE paper suite"):
         print(f"analysing {m.NAME} ...", flush=True)
         text, numbers = m.analyse(ctx)
         _write(out / "sections" / f"{m.__name__}.md", f"## {m.TITLE}\n\n{text.strip()}\n")
-        _write(out / "results" / f"{m.NAME}.json", json.dumps(numbers, indent=1, default=_json_default))
+        _write(out / "results" / f"{m.NAME}.json", json.dumps(numbers, indent=1, default=json_default))
         print(f"  {m.NAME}: {time.perf_counter() - t:.0f} s", flush=True)
     write_results(out, mode, argv if argv is not None else sys.argv[1:], time.perf_counter() - t0, args.jobs)
     print(f"wrote {out / 'RESULTS.md'} ({(time.perf_counter() - t0) / 60:.1f} min)", flush=True)
@@ -617,9 +546,9 @@ def write_results(out, mode, argv, seconds, jobs):
 
     cmd = " ".join(["python benchmarks/paper/run_all.py", *argv]).strip()
     results = [json.loads(p.read_text()) for p in sorted((out / "work" / "runs").glob("*/result.json"))]
-    train_min = sum(r.get("train_seconds", r["seconds"]) for r in results) / 60
+    train_min = sum(r["seconds"] for r in results) / 60
     head = [f"# MP-NODE paper results on mpnode ({mode.name} run)", "",
-            f"Made by `{cmd}` on {time.strftime('%Y-%m-%d')}; the last invocation took {seconds / 60:.1f} min "
+            f"Made by `{cmd}`; the last invocation took {seconds / 60:.1f} min "
             f"(cached runs are not retrained). Machine: {platform.machine()}, {os.cpu_count()} CPUs, Python "
             f"{platform.python_version()}, numpy {np.__version__}, numba {numba.__version__}. "
             + (f"Trainings ran {jobs} at a time, one numba thread each. " if jobs > 1 else "")

@@ -14,16 +14,27 @@ the reader sees whether the data sampler explains the distance to Table 1.
 
     python benchmarks/paper/exp_aggregation.py [--quick]
 """
-import dataclasses
-
-import exp_topologies
-from common import DataSpec, RunSpec, evaluate_nmse, hold_nmse, main, paper_units, run_line, table, zscore_mse
+from common import (
+    DataSpec,
+    RunSpec,
+    efficiency,
+    evaluate_nmse,
+    hold_nmse,
+    main,
+    model_curve,
+    paper_units,
+    run_line,
+    table,
+    zscore_mse,
+)
+from paper_numbers import TABLE1 as PAPER
+from paper_numbers import TABLE2_GENE as PAPER_TABLE2
+from runs_shared import FRESH_SEEDS, gene64_test
+from runs_shared import aggregation_hot_test_sets as hot_test_sets
+from runs_shared import aggregation_test_sets as test_sets
 
 NAME = "aggregation"
 TITLE = "7. Aggregation and the L2S baseline on unseen graphs (gene16, 10 minutes each)"
-#: Table 1 of the paper: validation on the training graphs (MP-NODE and L2S), test on unseen
-#: graphs (MP-NODE only)
-PAPER = {"mpnode": {"seen": 0.0051, "ba": 0.0045, "er": 0.0026, "ws": 0.0023}, "l2s": {"seen": 0.0106}}
 MINUTES = 10
 VARIANTS = (  # name, what, RunSpec settings
     ("gene16_paper_mean", "MP-NODE, --recipe paper (mean)", {"recipe": "paper"}),
@@ -56,31 +67,10 @@ def hot_run_specs(mode):
     return [RunSpec(name, train, mode.epochs(HOT_EPOCHS, 3), **settings) for name, _, settings in HOT_VARIANTS]
 
 
-def gene64_data(mode):
-    return DataSpec("gene64_ba", mode.pick(200, 5), 1)
-
-
-def test_sets(mode):
-    """(label, DataSpec, paper key) of every test set."""
-    sets = [("BA, the 5 training graphs", exp_topologies.seen_data(mode), "seen")]
-    sets += [(f"{k.upper()}, 5 unseen graphs", exp_topologies.test_data(mode, k), k) for k in ("ba", "er", "ws")]
-    return sets + [("gene64 BA(64, 32), zero-shot", gene64_data(mode), None)]
-
-
-def hot_test_sets(mode):
-    """The same test sets with hot-spot initial states (no gene64: its grid is another size)."""
-    return [(label + ", hot spots", dataclasses.replace(d, scene=d.scene + "_hot"), key)
-            for label, d, key in test_sets(mode)[:4]]
-
-
-#: Table 2, gene (4x4 -> 8x8): MP-NODE fine-tuned 12.53, from scratch 28, L2S 46.64
-PAPER_TABLE2 = {"gene64_ft_default": 12.53, "gene64_scratch_default": 28.0, "gene64_ft_l2s": 46.64}
-
-
 def gene64_runs(mode):
     """gene16 -> gene64 (Table 2's gene column): each gene16 model fine-tuned, and from scratch."""
     common = dict(train=(DataSpec("gene64_ba", mode.pick(100, 6), 0),), epochs=mode.epochs(600, 4),
-                  test=DataSpec("gene64_ba", mode.pick(100, 4), 1), test_points=mode.pick(10, 2))
+                  test=gene64_test(mode), test_points=mode.pick(10, 2))
     return [
         ("gene64_ft_default", "MP-NODE (defaults), fine-tuned from gene16",
          RunSpec("gene64_ft_default", init_from="gene16_default", recipe="auto", **common)),
@@ -103,12 +93,10 @@ def data(mode):
 
 def gene64_table(ctx, numbers):
     """Table 2's gene column: min test nMSE x the epoch of that model, fine-tuned and from scratch."""
-    import exp_finetune
-
     rows = []
     for name, label, _ in gene64_runs(ctx.mode):
         res = ctx.result(name)
-        best, epoch, product = exp_finetune.efficiency(exp_finetune.model_curve(res))
+        best, epoch, product = efficiency(model_curve(res))
         numbers[name] = {"min_nmse": best, "epoch": epoch, "product": product, "run": run_line(res)}
         rows.append([label, res["test_curve"][0][1] if res["spec"]["init_from"] else "", best, epoch, product,
                      PAPER_TABLE2.get(name, "")])
@@ -145,7 +133,7 @@ def analyse(ctx):
         f"Each model trains for {budget} on "
         f"{res0['train_trajectories']} trajectories of gene16_ba_multi; test sets as in experiment 2 "
         f"({ctx.data(sets[1][1]).n_trajectories} trajectories per kind, graph seeds "
-        f"{list(exp_topologies.FRESH_SEEDS)}) and {ctx.data(sets[-1][1]).n_trajectories} gene64 trajectories.",
+        f"{list(FRESH_SEEDS)}) and {ctx.data(sets[-1][1]).n_trajectories} gene64 trajectories.",
         "",
         table(["model", "test graphs", "nMSE", "MSE, z-scored units", "paper units (Huber sum)", "paper (Table 1)"],
               rows),

@@ -11,15 +11,15 @@ quad3 -> quad6).  The best-validation model of each is scored on fresh test traj
 
     python benchmarks/paper/exp_batch.py [--quick]
 """
-import exp_schedule
 from common import DataSpec, RunSpec, evaluate_nmse, main, pyplot, run_line, table
+from runs_shared import SCHEDULE_SYSTEMS
 
 NAME = "batch"
 TITLE = "13. Batch size at equal wall time (Adam steps per epoch)"
 MINUTES = 5
 FINETUNE_MINUTES = 3
 #: key: (scene, training trajectories full/quick): experiment 8's systems (and data) and quad3
-SYSTEMS = {**exp_schedule.SYSTEMS, "quad3": ("quad3", (500, 6))}
+SYSTEMS = {**SCHEDULE_SYSTEMS, "quad3": ("quad3", (500, 6))}
 TRAIN_BATCHES = (128, 32)
 #: target: (source system, scene, training trajectories full/quick)
 TARGETS = {
@@ -65,7 +65,7 @@ def elapsed_curve(res):
     """(minutes, validation loss) of a run: the epochs' end times when logged, else spread evenly."""
     h = [r for r in res["history"] if r.get("val_loss") is not None and r["epoch"] > 0]
     last = max(h[-1]["epoch"], 1)
-    t = [r["elapsed"] / 60 if r.get("elapsed") is not None else r["epoch"] / last * res["train_seconds"] / 60
+    t = [r["elapsed"] / 60 if r.get("elapsed") is not None else r["epoch"] / last * res["seconds"] / 60
          for r in h]
     return t, [r["val_loss"] for r in h]
 

@@ -18,118 +18,20 @@ two test errors: our nMSE, and the paper's units (`common.paper_units`).
 
     python benchmarks/paper/exp_finetune.py [--quick]
 """
-import exp_aggregation
-import exp_messages
-import exp_more_nodes
-import exp_topologies
 import gene_grid
 import numpy as np
-from common import DataSpec, RunSpec, main, pyplot, run_line, table, test_curve
+from common import efficiency, first_epoch_below, main, model_curve, pyplot, run_line, table, test_curve
+from paper_numbers import TABLE2 as PAPER_TABLE2
+from runs_shared import finetune_cases as cases
+from runs_shared import finetune_name, finetune_runs
+from runs_shared import finetune_test_points as test_points
 
 NAME = "finetune"
 TITLE = "4. Fine-tuning against training from scratch (paper Fig. 5, Table 2)"
-SIZES = (50, 100, 500)
-
-#: fine-tuning learning rates tried besides the default 1e-3 at coupling 0.01: there the Lorenz10
-#: fine-tunes never improved on their starting model's validation loss, so a careful user would lower it
-LORENZ_FINETUNE_LRS = (1e-3, 1e-4)
-
-#: (scene, Fig. 5 panel, what differs from Lorenz3, epochs, fine-tune lrs)
-LORENZ_TARGETS = (("lorenz10", "5a", "coupling 0.01", 1000, LORENZ_FINETUNE_LRS),
-                  ("lorenz10_medium", "5d", "coupling 1", 1000, (1e-3,)),
-                  ("lorenz10_high", "5d", "coupling 5", 1000, (1e-3,)),
-                  ("lorenz10_10s", "5e", "coupling 0.01, 10 s", 400, (1e-3,)))
-
-#: the paper's Table 2 (min test error x epochs), by column
-PAPER_TABLE2 = {("lorenz", 50): (632.70, 12800), ("lorenz", 100): (833.91, 10454), ("lorenz", 500): (477.75, 5656),
-                ("kuramoto", 50): (1358.50, 5008), ("kuramoto", 100): (1264.83, 5268),
-                ("kuramoto", 500): (874.80, 3974),
-                ("gene", 100): (exp_aggregation.PAPER_TABLE2["gene64_ft_default"],
-                                exp_aggregation.PAPER_TABLE2["gene64_scratch_default"])}
-
-
-def finetune_name(pattern, lr):
-    return pattern.format("finetune" if lr == 1e-3 else f"finetune-lr{lr:g}")
-
-
-def cases(mode):
-    """(run-name pattern, label, target training data, test data, source run spec, epochs, fine-tune lrs,
-    Fig. 5 panel, Table 2 column) per transfer."""
-    out = []
-    sizes = mode.pick(SIZES, SIZES[:1])
-    for scene, panel, what, epochs, lrs in LORENZ_TARGETS:
-        if mode.quick and scene != "lorenz10":
-            continue
-        for n in SIZES if scene == "lorenz10" else sizes:  # quick: three sizes of the same 6 trajectories
-            out.append((f"{scene}_{{}}_{n}", f"Lorenz3 -> Lorenz10 ({what}), {n} trajectories",
-                        DataSpec(scene, mode.pick(n, 6), 0), DataSpec(scene, mode.pick(200, 5), 1),
-                        exp_more_nodes.run_spec(mode), mode.epochs(epochs, 4), lrs, panel, ("lorenz", n)))
-    out.append(("gene64_{}", "gene16 (BA x5) -> gene64 (BA), 100 trajectories",
-                DataSpec("gene64_ba", mode.pick(100, 6), 0), DataSpec("gene64_ba", mode.pick(100, 4), 1),
-                exp_topologies.run_spec(mode), mode.epochs(600, 4), (1e-3,), "5b", ("gene", 100)))
-    for n in sizes:
-        out.append((f"kuramoto_er_{{}}_{n}", f"Kuramoto10 BA -> ER, {n} trajectories",
-                    DataSpec("kuramoto10_er", mode.pick(n, 6), 0), DataSpec("kuramoto10_er", mode.pick(200, 5), 1),
-                    exp_messages.run_spec(mode, "kuramoto", False), mode.epochs(1000, 4), (1e-3,), "5c",
-                    ("kuramoto", n)))
-    return out
-
-
-def test_points(mode):
-    """Evaluations of the test curve per run (besides fine-tuning's epoch 0)."""
-    return mode.pick(20, 2)
 
 
 def runs(mode):
-    specs = []
-    points = test_points(mode)
-    for pattern, _, train, test, source, epochs, lrs, _, _ in cases(mode):
-        specs.append(source)
-        specs += [RunSpec(finetune_name(pattern, lr), (train,), epochs, message_dim=source.message_dim,
-                          init_from=source.name, test=test, test_points=points, lr=lr) for lr in lrs]
-        specs.append(RunSpec(pattern.format("scratch"), (train,), epochs, message_dim=source.message_dim,
-                             curriculum=source.curriculum,
-                             curriculum_epochs=scratch_curriculum_epochs(source, epochs),
-                             test=test, test_points=points))
-    return specs
-
-
-def scratch_curriculum_epochs(source, epochs):
-    """The source recipe's epochs per curriculum window, but at least half the run on the full horizon."""
-    if not source.curriculum:
-        return source.curriculum_epochs
-    return max(1, min(source.curriculum_epochs, epochs // (2 * len(source.curriculum))))
-
-
-def model_curve(res, key="test_curve"):
-    """A test curve (``key``: test_curve in nMSE, test_curve_paper_units in the paper's units) as
-    [[epoch the evaluated model was trained to, error], ...].
-
-    A point evaluated at epoch e is the best-validation model at e, i.e. the weights of the last
-    strict validation improvement at or before e (fit's rule).  A scratch run's epoch-0 point is
-    dropped (`common.test_curve`).
-    """
-    best, best_at, trained_to = float("inf"), 0, {}
-    for r in res["history"]:
-        if r["val_loss"] is not None and r["val_loss"] < best:
-            best, best_at = r["val_loss"], r["epoch"]
-        trained_to[r["epoch"]] = best_at
-    return [[trained_to.get(int(e), int(e)), float(v)] for e, v in zip(*test_curve(res, key))]
-
-
-def efficiency(curve):
-    """(min test error, first epoch reaching it, their product) of a test curve [[epoch, error], ...]."""
-    c = np.asarray(curve, dtype=float)
-    i = int(np.argmin(c[:, 1]))
-    return float(c[i, 1]), int(c[i, 0]), float(c[i, 1] * max(c[i, 0], 1))
-
-
-def first_epoch_below(curve, level):
-    """The first evaluated epoch whose test nMSE is <= level (None: never)."""
-    for e, v in curve:
-        if v <= level:
-            return int(e)
-    return None
+    return finetune_runs(mode)
 
 
 def summarise(res):

@@ -11,8 +11,8 @@ and 4 substeps on the same test set.
 """
 import dataclasses
 
-import exp_messages
 from common import evaluate_nmse, main, run_line, table
+from runs_shared import messages_run, messages_test
 
 NAME = "integrator"
 TITLE = "11. The paper's integrator: training at 1 against 4 RK4 substeps per dt (coupled pendulum)"
@@ -20,7 +20,7 @@ SUBSTEPS = (1, 4)
 
 
 def run_specs(mode):
-    base = exp_messages.run_spec(mode, "pendulum", False)
+    base = messages_run(mode, "pendulum", False)
     return [base, dataclasses.replace(base, name=base.name + "_rk4x4", extra=(("substeps", 4),))]
 
 
@@ -29,12 +29,12 @@ def runs(mode):
 
 
 def analyse(ctx):
-    traj = ctx.data(exp_messages.test_data(ctx.mode, "pendulum"))
+    traj = ctx.data(messages_test(ctx.mode, "pendulum"))
     rows, numbers = [], {}
     for spec, trained in zip(run_specs(ctx.mode), SUBSTEPS):
         res, model = ctx.result(spec.name), ctx.model(spec.name)
         numbers[spec.name] = {"trained_substeps": trained, "run": run_line(res),
-                              "train_minutes": res.get("train_seconds", res["seconds"]) / 60}
+                              "train_minutes": res["seconds"] / 60}
         for s in SUBSTEPS:
             ev = evaluate_nmse(model.with_spec(substeps=s), traj)
             numbers[spec.name][f"nmse_at_{s}"] = ev.nmse

@@ -5,8 +5,8 @@ run here); only the message dimension changes.
 
     python benchmarks/paper/exp_message_size.py [--quick]
 """
-import exp_messages
 from common import curve, evaluate_nmse, flatness, main, pyplot, run_line, table
+from runs_shared import messages_run, messages_test
 
 NAME = "message_size"
 TITLE = "5. Message size (paper Fig. 8): Kuramoto10 BA, dm = 1, 3, 7, 13"
@@ -14,13 +14,12 @@ DIMS = (1, 3, 7, 13)
 
 
 def runs(mode):
-    return [exp_messages.run_spec(mode, "kuramoto", False, dm) for dm in DIMS] + \
-        [exp_messages.run_spec(mode, "kuramoto", True)]
+    return [messages_run(mode, "kuramoto", False, dm) for dm in DIMS] + [messages_run(mode, "kuramoto", True)]
 
 
 def analyse(ctx):
     plt = pyplot()
-    test = ctx.data(exp_messages.test_data(ctx.mode, "kuramoto"))
+    test = ctx.data(messages_test(ctx.mode, "kuramoto"))
     fig, ax = plt.subplots(figsize=(6, 3.6))
     rows, numbers = [], {}
     for i, spec in enumerate(runs(ctx.mode)):

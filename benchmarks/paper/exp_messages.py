@@ -9,36 +9,16 @@ outgoing message over time, and the test nMSE of both models.
     python benchmarks/paper/exp_messages.py [--quick]
 """
 import numpy as np
-from common import DataSpec, RunSpec, curve, evaluate_nmse, figure_block, flatness, main, pyplot, run_line, table
+from common import curve, evaluate_nmse, figure_block, flatness, main, pyplot, run_line, table
+from runs_shared import MESSAGE_SYSTEMS as SYSTEMS
+from runs_shared import messages_run as run_spec
+from runs_shared import messages_test as test_data
 
 from mpnode.engine import numpy_path as numpy_engine
 from mpnode.evaluation.metrics import nmse
 
 NAME = "messages"
 TITLE = "1. Messages matter (paper Fig. 2, 3, 4)"
-
-SYSTEMS = {  # key: (scene, training trajectories full/quick, epochs full/quick)
-    "pendulum": ("coupled_pendulum", (500, 12), (4000, 4)),
-    "kuramoto": ("kuramoto10_ba", (500, 12), (1000, 4)),
-}
-
-
-def train_data(mode, key):
-    scene, (b_full, b_quick), _ = SYSTEMS[key]
-    return DataSpec(scene, mode.pick(b_full, b_quick), 0)
-
-
-def test_data(mode, key):
-    return DataSpec(SYSTEMS[key][0], mode.pick(200, 6), 1)
-
-
-def run_spec(mode, key, zero, message_dim=3):
-    """The run of ``key`` with messages (or zero messages); exp_message_size reuses it."""
-    _, _, (e_full, e_quick) = SYSTEMS[key]
-    suffix = "zero" if zero else f"dm{message_dim}"
-    return RunSpec(f"{key}_{suffix}", (train_data(mode, key),), mode.epochs(e_full, e_quick),
-                   message_dim=message_dim, zero_messages=zero)
-
 
 def runs(mode):
     return [run_spec(mode, k, zero) for k in SYSTEMS for zero in (False, True)]

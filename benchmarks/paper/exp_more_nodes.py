@@ -6,25 +6,20 @@ of experiment 4 trained on 500 Lorenz10 trajectories (from scratch and fine-tune
 
     python benchmarks/paper/exp_more_nodes.py [--quick]
 """
-from common import DataSpec, RunSpec, evaluate_nmse, flatness, main, run_line, table
+from common import evaluate_nmse, flatness, main, run_line, table
+from runs_shared import finetune_runs
+from runs_shared import lorenz3_run as run_spec
+from runs_shared import lorenz_test as test_data
 
 NAME = "more_nodes"
 TITLE = "3. Zero-shot to more nodes (Lorenz3 -> Lorenz7, Lorenz10)"
 SIZES = (3, 7, 10)
-
-
-def run_spec(mode):
-    """The Lorenz3 model (horizon curriculum 5, 10, full); exp_finetune starts from it."""
-    return RunSpec("lorenz3", (DataSpec("lorenz3", mode.pick(1000, 12), 0),), mode.epochs(3000, 4),
-                   curriculum=(5, 10), curriculum_epochs=mode.epochs(150, 1))
-
-
-def test_data(mode, k):
-    return DataSpec(f"lorenz{k}", mode.pick(200, 5), 1)
+#: experiment 4's Lorenz10 models on 500 trajectories, set beside the zero-shot model for scale
+LORENZ10 = ("lorenz10_scratch_500", "lorenz10_finetune_500")
 
 
 def runs(mode):
-    return [run_spec(mode)]
+    return [run_spec(mode)] + [s for s in finetune_runs(mode) if s.name in LORENZ10]
 
 
 def data(mode):
@@ -34,13 +29,7 @@ def data(mode):
 def analyse(ctx):
     spec = run_spec(ctx.mode)
     res = ctx.result(spec.name)
-    models = [(spec.name, "zero-shot")]
-    # the Lorenz10 models of exp_finetune, when that experiment has trained them with today's settings
-    import exp_finetune
-
-    current = {s.name: s.key for s in exp_finetune.runs(ctx.mode)}
-    models += [(n, "trained on Lorenz10") for n in ("lorenz10_scratch_500", "lorenz10_finetune_500")
-               if n in current and (ctx.result(n) or {}).get("key") == current[n]]
+    models = [(spec.name, "zero-shot")] + [(n, "trained on Lorenz10") for n in LORENZ10]
     rows, numbers = [], {"run": run_line(res), "val_improvement_last_20pct": flatness(res)}
     for name, how in models:
         model = ctx.model(name)

@@ -7,26 +7,26 @@ then each NODE is asked to run on a graph of another size, which it must refuse.
 
     python benchmarks/paper/exp_node.py [--quick]
 """
-import exp_schedule
 import numpy as np
 from common import RunSpec, evaluate_nmse, main, run_line, table
+from runs_shared import SCHEDULE_MINUTES, SCHEDULE_SYSTEMS, schedule_run, schedule_test
 
 NAME = "node"
 TITLE = "10. Messages against a monolithic neural ODE (plain NODE, same wall time)"
 
 
 def node_run(mode, key):
-    base = exp_schedule.run_spec(mode, key, "plateau")
+    base = schedule_run(mode, key, "plateau")
     extra = tuple((k, v) for k, v in base.extra if k != "schedule")
     return RunSpec(f"node_{key}", base.train, base.epochs, kind="node", recipe="auto", extra=extra)
 
 
 def runs(mode):
-    return [s for key in exp_schedule.SYSTEMS for s in (exp_schedule.run_spec(mode, key, "plateau"), node_run(mode, key))]
+    return [s for key in SCHEDULE_SYSTEMS for s in (schedule_run(mode, key, "plateau"), node_run(mode, key))]
 
 
 def data(mode):
-    return exp_schedule.data(mode)
+    return [schedule_test(mode, key) for key in SCHEDULE_SYSTEMS]
 
 
 def refusal(model, n_nodes):
@@ -44,9 +44,9 @@ def refusal(model, n_nodes):
 
 def analyse(ctx):
     rows, numbers = [], {}
-    for key in exp_schedule.SYSTEMS:
-        test = ctx.data(exp_schedule.test_data(ctx.mode, key))
-        for label, spec in (("MP-NODE (defaults)", exp_schedule.run_spec(ctx.mode, key, "plateau")),
+    for key in SCHEDULE_SYSTEMS:
+        test = ctx.data(schedule_test(ctx.mode, key))
+        for label, spec in (("MP-NODE (defaults)", schedule_run(ctx.mode, key, "plateau")),
                             ("plain NODE", node_run(ctx.mode, key))):
             res, model = ctx.result(spec.name), ctx.model(spec.name)
             ev = evaluate_nmse(model, test)
@@ -56,7 +56,7 @@ def analyse(ctx):
     node = ctx.model(node_run(ctx.mode, "kuramoto10").name)
     message = refusal(node, node.spec.n_nodes + 3)
     numbers["refusal"] = message
-    budget = "3 epochs" if ctx.mode.quick else ctx.mode.wall_time(exp_schedule.MINUTES)
+    budget = "3 epochs" if ctx.mode.quick else ctx.mode.wall_time(SCHEDULE_MINUTES)
     text = [
         f"Each model: {budget}, `mpnode train` defaults (recipe auto), test sets of experiment 8. The NODE sees",
         "the whole system's state (node-major) and no graph: on gene16's five BA graphs it cannot tell them apart.",

@@ -9,19 +9,32 @@ and from scratch, and the scaled MP-NODE fine-tuned; efficiency = min test nMSE 
 
     python benchmarks/paper/exp_quadrotor.py [--quick]
 """
-import exp_finetune
-from common import DataSpec, RunSpec, evaluate_nmse, figure_block, hold_nmse, main, pyplot, run_line, table, test_curve
+from common import (
+    DataSpec,
+    RunSpec,
+    efficiency,
+    evaluate_nmse,
+    figure_block,
+    first_epoch_below,
+    hold_nmse,
+    main,
+    model_curve,
+    pyplot,
+    run_line,
+    table,
+    test_curve,
+)
+from paper_numbers import TABLE2_QUAD as PAPER
+from runs_shared import quad6_test as q6_test
 
 NAME = "quadrotor"
 TITLE = "9. Quadrotor swarm: message sizes, L2S, 3 -> 6 quadrotors (paper Fig. 7, 9, Table 2)"
 MINUTES = 4
 DIMS = (7, 13, 20)
-#: Table 2, quadrotors: MP-NODE fine-tuned 236.00, scratch N/A, L2S 476.0
 FIG9 = "Figure 9: Performance of a 3 Quadrotor MP-NODE finetuned on the 6 Quadrotor System"
 #: Fig. 9's pairs: (fine-tuned run, its from-scratch counterpart or None, colour)
 FIG9_PAIRS = (("q6_ft_m20", "q6_scratch_m20", "C0"), ("q6_ft_m20_scaled", None, "C2"),
               ("q6_ft_l2s", "q6_scratch_l2s", "C3"))
-PAPER = {"q6_ft_m20": 236.0, "q6_ft_l2s": 476.0}
 
 
 def q3_train(mode):
@@ -34,10 +47,6 @@ def q3_test(mode):
 
 def q6_train(mode):
     return DataSpec("quad6", mode.pick(80, 6), 2)
-
-
-def q6_test(mode):
-    return DataSpec("quad6", mode.pick(200, 4), 3)
 
 
 def source_runs(mode):
@@ -85,7 +94,7 @@ def analyse(ctx):
                       ev3.nmse, ev6.nmse])
     for name, label, _ in target_runs(ctx.mode):
         res = ctx.result(name)
-        best, epoch, product = exp_finetune.efficiency(exp_finetune.model_curve(res))
+        best, epoch, product = efficiency(model_curve(res))
         numbers[name] = {"min_nmse": best, "epoch": epoch, "product": product, "run": run_line(res)}
         rows6.append([label, res["test_curve"][0][1] if res["spec"]["init_from"] else "", best, epoch, product,
                       PAPER.get(name, "N/A" if "scratch" in name and "m20" in name else "")])
@@ -164,14 +173,14 @@ def fig9_finetune(ctx):
 
 def fig9_sentence(ctx, ft, sc, labels):
     """What Fig. 9 shows for one fine-tuned run (and its scratch counterpart): (sentence, numbers)."""
-    c_ft = exp_finetune.model_curve(ctx.result(ft))
-    nums = {"min_nmse": exp_finetune.efficiency(c_ft)[0]}
+    c_ft = model_curve(ctx.result(ft))
+    nums = {"min_nmse": efficiency(c_ft)[0]}
     text = f"{labels[ft]}: min test nMSE {nums['min_nmse']:.3g}"
     if sc is None:
         return text + " (no scratch run)", nums
-    c_sc = exp_finetune.model_curve(ctx.result(sc))
-    nums["scratch_min_nmse"] = exp_finetune.efficiency(c_sc)[0]
-    nums["epochs_to_scratch_best"] = exp_finetune.first_epoch_below(c_ft, nums["scratch_min_nmse"])
+    c_sc = model_curve(ctx.result(sc))
+    nums["scratch_min_nmse"] = efficiency(c_sc)[0]
+    nums["epochs_to_scratch_best"] = first_epoch_below(c_ft, nums["scratch_min_nmse"])
     (e1, v_ft), (_, v_sc) = ([(e, v) for e, v in zip(*test_curve(ctx.result(n))) if e > 0][0] for n in (ft, sc))
     nums["first_evaluation"] = {"epoch": int(e1), "finetuned": float(v_ft), "scratch": float(v_sc)}
     reach = nums["epochs_to_scratch_best"]

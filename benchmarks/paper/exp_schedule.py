@@ -8,33 +8,15 @@ should be the one that wins on all four.
 
     python benchmarks/paper/exp_schedule.py [--quick]
 """
-from common import DataSpec, RunSpec, curve, evaluate_nmse, main, pyplot, run_line, table
+from common import curve, evaluate_nmse, main, pyplot, run_line, table
+from runs_shared import SCHEDULE_MINUTES as MINUTES
+from runs_shared import SCHEDULE_SYSTEMS as SYSTEMS
+from runs_shared import schedule_run as run_spec
+from runs_shared import schedule_test as test_data
 
 NAME = "schedule"
 TITLE = "8. Learning-rate schedule at equal wall time (plateau vs cosine)"
-MINUTES = 5
-SYSTEMS = {  # key: (scene, training trajectories full/quick)
-    "pendulum": ("coupled_pendulum", (500, 12)),
-    "lorenz3": ("lorenz3", (1000, 12)),
-    "gene16": ("gene16_ba_multi", (500, 10)),
-    "kuramoto10": ("kuramoto10_ba", (500, 12)),
-}
 SCHEDULES = ("plateau", "cosine")
-
-
-def train_data(mode, key):
-    scene, (full, quick) = SYSTEMS[key]
-    return DataSpec(scene, mode.pick(full, quick), 0)
-
-
-def test_data(mode, key):
-    return DataSpec(SYSTEMS[key][0], mode.pick(200, 5), 1)
-
-
-def run_spec(mode, key, schedule):
-    extra = (("schedule", schedule),) + mode.time_limit(MINUTES)
-    return RunSpec(f"sched_{key}_{schedule}", (train_data(mode, key),), mode.pick(100_000, 3), recipe="auto",
-                   extra=extra)
 
 
 def runs(mode):

@@ -15,11 +15,9 @@ thread (numba.set_num_threads(1); scipy is single-threaded).
 """
 import time
 
-import exp_messages
-import exp_more_nodes
-import exp_topologies
 import numpy as np
 from common import main, pyplot, table
+from runs_shared import gene16_run, gene16_seen, lorenz3_run, lorenz_test, messages_run, messages_test
 
 NAME = "speed"
 TITLE = "6. Speed against error: learned rollouts vs the reference simulator"
@@ -32,10 +30,10 @@ TRUTH_TOL = 1e-12
 def systems(mode):
     """label -> (run spec of the model, test data spec)."""
     return {
-        "coupled pendulum": (exp_messages.run_spec(mode, "pendulum", False), exp_messages.test_data(mode, "pendulum")),
-        "lorenz3": (exp_more_nodes.run_spec(mode), exp_more_nodes.test_data(mode, 3)),
-        "gene16 (BA)": (exp_topologies.run_spec(mode), exp_topologies.seen_data(mode)),
-        "kuramoto10 (BA)": (exp_messages.run_spec(mode, "kuramoto", False), exp_messages.test_data(mode, "kuramoto")),
+        "coupled pendulum": (messages_run(mode, "pendulum", False), messages_test(mode, "pendulum")),
+        "lorenz3": (lorenz3_run(mode), lorenz_test(mode, 3)),
+        "gene16 (BA)": (gene16_run(mode), gene16_seen(mode)),
+        "kuramoto10 (BA)": (messages_run(mode, "kuramoto", False), messages_test(mode, "kuramoto")),
     }
 
 

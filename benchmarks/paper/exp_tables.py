@@ -1,14 +1,12 @@
 """The paper's Tables 1 and 2, cell by cell: ours beside the paper's, with a verdict.
 
 It trains nothing: it reads what experiments 2, 4, 7 and 9 wrote into results/*.json in this
-output folder, so it runs last.  Its units follow section 7's reading of the paper's metric:
+output folder, and the gene64 and quad6 runs of experiments 7 and 9, so it runs last.  Its units
+follow section 7's reading of the paper's metric:
 - Table 1 is a per-step error: our mean squared error in the model's z-scored units;
 - Table 2 is min(test loss) x (epoch of that model), the test loss being the Julia code's
-  training loss (the Huber sum over the horizon of the z-scored error: `common.paper_units`).
-The gene64 and quad6 runs of experiments 7 and 9 use their test curves in the paper's units with
-experiment 4's rule; a run trained before the curves recorded those units falls back to the final
-model's test loss times the epoch of its nMSE curve's minimum, exact when that minimum is the
-final model (the table says when it is not).
+  training loss (the Huber sum over the horizon of the z-scored error: `common.paper_units`),
+  from each run's test curve in those units with experiment 4's rule.
 
 A cell is *reproduced* when ours is at most twice the paper's (lower counts too), *not
 reproduced* otherwise; a column of Table 2 reproduces the paper's claim when fine-tuning is
@@ -19,23 +17,21 @@ more efficient than training from scratch, and its ratio is set beside the paper
 import json
 import math
 
-import exp_aggregation
-import exp_finetune
-import exp_quadrotor
-from common import evaluate_nmse, main, paper_units, table
+import paper_numbers
+from common import efficiency, main, model_curve, table
+from runs_shared import FINETUNE_SIZES as SIZES
+from runs_shared import aggregation_hot_test_sets, aggregation_test_sets
 
 NAME = "tables"
 TITLE = "12. The paper's Tables 1 and 2, cell by cell"
-#: Table 1's cells: (label, test-set key of exp_aggregation; the paper's values are exp_aggregation.PAPER)
+#: Table 1's cells: (label, test-set key of experiment 7; the paper's values are paper_numbers.TABLE1)
 TABLE1 = (("validation, BA (training graphs)", "seen"), ("test, BA (unseen graphs)", "ba"),
           ("test, ER (unseen)", "er"), ("test, WS (unseen)", "ws"))
 LORENZ_VARIANTS = (("lorenz10", "coupling 0.01 (Fig. 5a)"), ("lorenz10_medium", "coupling 1 (Fig. 5d)"),
                    ("lorenz10_high", "coupling 5 (Fig. 5d)"), ("lorenz10_10s", "coupling 0.01, 10 s (Fig. 5e)"))
-SIZES = exp_finetune.SIZES
-#: Table 2's gene and quadrotor columns: (MP-NODE fine-tuned, scratch, L2S), from the experiments that own them
-GENE = tuple(exp_aggregation.PAPER_TABLE2.get(n) for n in ("gene64_ft_default", "gene64_scratch_default",
-                                                           "gene64_ft_l2s"))
-QUAD = (exp_quadrotor.PAPER["q6_ft_m20"], None, exp_quadrotor.PAPER["q6_ft_l2s"])
+#: Table 2's gene and quadrotor columns: (MP-NODE fine-tuned, scratch, L2S)
+GENE = tuple(paper_numbers.TABLE2_GENE[n] for n in ("gene64_ft_default", "gene64_scratch_default", "gene64_ft_l2s"))
+QUAD = (paper_numbers.TABLE2_QUAD["q6_ft_m20"], None, paper_numbers.TABLE2_QUAD["q6_ft_l2s"])
 
 
 def runs(mode):
@@ -60,20 +56,20 @@ def table1(ctx):
     agg, topo = read(ctx, "aggregation"), read(ctx, "topologies") or {}
     if agg is None:
         return "Table 1 needs experiment 7 (`results/aggregation.json`)."
-    sets = {key: spec.key for _, spec, key in exp_aggregation.test_sets(ctx.mode) if key}
-    hot = {key: spec.key for _, spec, key in exp_aggregation.hot_test_sets(ctx.mode)}
+    sets = {key: spec.key for _, spec, key in aggregation_test_sets(ctx.mode) if key}
+    hot = {key: spec.key for _, spec, key in aggregation_hot_test_sets(ctx.mode)}
     models = (("MP-NODE, defaults (exp. 7)", agg.get("gene16_default"), sets),
               ("MP-NODE, paper's settings (exp. 7)", agg.get("gene16_paper_mean"), sets),
               ("MP-NODE, paper's settings, 4000 epochs (exp. 2)", topo, sets),
               ("MP-NODE, paper's settings, hot-spot data (exp. 7)", agg.get("gene16_paper_mean_hot"), hot))
     rows = []
     for cell, key in TABLE1:
-        paper = exp_aggregation.PAPER["mpnode"][key]
+        paper = paper_numbers.TABLE1["mpnode"][key]
         for who, numbers, keys in models:
             if numbers and keys[key] in numbers:
                 ours = numbers[keys[key]]["zscore_mse"]
                 rows.append([cell, who, ours, paper, verdict(ours, paper)])
-    l2s, paper = agg["gene16_l2s"][sets["seen"]]["zscore_mse"], exp_aggregation.PAPER["l2s"]["seen"]
+    l2s, paper = agg["gene16_l2s"][sets["seen"]]["zscore_mse"], paper_numbers.TABLE1["l2s"]["seen"]
     rows.append(["validation, BA (training graphs)", "L2S (exp. 7)", l2s, paper, verdict(l2s, paper)])
     return table(["cell", "model", "ours (MSE per step, z-scored)", "paper", "verdict"], rows)
 
@@ -102,20 +98,11 @@ def lorenz_table(ft):
                   "paper ratio"], rows)
 
 
-def cached_paper_units(ctx, name, test):
-    """(min test loss x epoch in paper units, note) of a cached run: from its paper-unit test curve
-    as experiment 4 computes it, or, for a run whose curve is in nMSE only, from its final model."""
+def run_paper_units(ctx, name):
+    """Min test loss x epoch in paper units of a run, from its test curve in those units as
+    experiment 4 computes it (None when it has not run)."""
     res = ctx.result(name)
-    if res is None:
-        return None, " (not run)"
-    if res.get("test_curve_paper_units"):
-        return exp_finetune.efficiency(exp_finetune.model_curve(res, "test_curve_paper_units"))[2], ""
-    curve = res["test_curve"]
-    best = min(range(len(curve)), key=lambda i: curve[i][1])
-    model, traj = ctx.model(name), ctx.data(test)
-    loss = paper_units(traj, evaluate_nmse(model, traj).predictions)
-    note = "" if best == len(curve) - 1 else " (minimum before the final model)"
-    return loss * max(curve[best][0], 1), note
+    return None if res is None else efficiency(model_curve(res, "test_curve_paper_units"))[2]
 
 
 def column(label, ft, sc, l2s, paper):
@@ -149,13 +136,9 @@ def table2(ctx):
             if c:
                 rows.append(column(label, c["finetune"]["paper_units"]["product"],
                                    c["scratch"]["paper_units"]["product"], None, (*c["paper"], None)))
-    gene_test = exp_aggregation.gene64_runs(ctx.mode)[0][2].test
-    units = {n: cached_paper_units(ctx, n, gene_test) for n in ("gene64_ft_default", "gene64_scratch_default",
-                                                                 "gene64_ft_l2s")}
-    units.update({n: cached_paper_units(ctx, n, exp_quadrotor.q6_test(ctx.mode))
-                  for n in ("q6_ft_m20", "q6_scratch_m20", "q6_ft_l2s")})
-    notes += [f"`{n}`{note}" for n, (_, note) in units.items() if note]
-    v = {n: u for n, (u, _) in units.items()}
+    names = ("gene64_ft_default", "gene64_scratch_default", "gene64_ft_l2s", "q6_ft_m20", "q6_scratch_m20", "q6_ft_l2s")
+    v = {n: run_paper_units(ctx, n) for n in names}
+    notes += [f"`{n}` (not run)" for n in names if v[n] is None]
     rows.append(column("Gene, defaults + L2S (exp. 7)", v["gene64_ft_default"], v["gene64_scratch_default"],
                        v["gene64_ft_l2s"], GENE))
     rows.append(column("Quadrotors 3 -> 6 (exp. 9)", v["q6_ft_m20"], v["q6_scratch_m20"], v["q6_ft_l2s"], QUAD))

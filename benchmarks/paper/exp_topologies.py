@@ -7,25 +7,17 @@ graphs it never saw: five new BA graphs and five ER and five WS graphs (seeds 6.
     python benchmarks/paper/exp_topologies.py [--quick]
 """
 import gene_grid
-from common import DataSpec, RunSpec, evaluate_nmse, flatness, main, run_line, table, zscore_mse
+from common import evaluate_nmse, flatness, main, run_line, table, zscore_mse
+from paper_numbers import TABLE1
+from runs_shared import FRESH_SEEDS, GRAPH_KINDS
+from runs_shared import gene16_run as run_spec
+from runs_shared import gene16_seen as seen_data
+from runs_shared import gene16_test as test_data
 
 NAME = "topologies"
 TITLE = "2. Zero-shot to unseen topologies (paper Table 1, Fig. 6b)"
-PAPER = {"ba": 0.0045, "er": 0.0026, "ws": 0.0023}
-FRESH_SEEDS = (6, 7, 8, 9, 10)
-
-
-def run_spec(mode):
-    """The gene16 model on five BA graphs; exp_finetune starts its gene64 runs from it."""
-    return RunSpec("gene16_ba5", (DataSpec("gene16_ba_multi", mode.pick(500, 10), 0),), mode.epochs(4000, 4))
-
-
-def test_data(mode, kind):
-    return DataSpec(f"gene16_{kind}", mode.pick(200, 5), 1, graph_seeds=FRESH_SEEDS)
-
-
-def seen_data(mode):
-    return DataSpec("gene16_ba_multi", mode.pick(200, 5), 1)
+#: Table 1's test cells
+PAPER = {k: TABLE1["mpnode"][k] for k in GRAPH_KINDS}
 
 
 def runs(mode):

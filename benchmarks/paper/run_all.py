@@ -5,7 +5,8 @@
     python benchmarks/paper/run_all.py --quick    # CI-sized smoke run (a few minutes) into benchmarks/paper/quick/
 
 Each experiment also runs alone (python benchmarks/paper/exp_NAME.py [--short | --quick]); trained
-models and data are cached under OUT/work, so reruns only redo what changed.
+models and data are cached under OUT/work, so reruns only redo what changed, and an invocation
+that was killed continues its trainings from their checkpoints (mpnode.runs.sweep).
 """
 from common import EXPERIMENTS, main
 

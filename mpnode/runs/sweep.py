@@ -366,7 +366,7 @@ def _test_point(result, tests, test_names, folder):
     os.makedirs(os.path.join(folder, "points"), exist_ok=True)
     result.model.save(os.path.join(folder, point["model"]))
     with open(os.path.join(folder, POINTS), "a") as f:
-        f.write(json.dumps(point, default=_json_default) + "\n")
+        f.write(json.dumps(point, default=json_default) + "\n")
     return point
 
 
@@ -579,18 +579,18 @@ def _keep(out, answer):
             f.write(blob)
     os.makedirs(folder, exist_ok=True)
     with atomic_path(os.path.join(folder, "result.json")) as tmp, open(tmp, "w") as f:
-        json.dump(res, f, indent=1, default=_json_default)
+        json.dump(res, f, indent=1, default=json_default)
     for name in (STARTED, POINTS, os.path.basename(state_path(MODEL))):
         if os.path.exists(os.path.join(folder, name)):
             os.remove(os.path.join(folder, name))
     return res
 
 
-def _json_default(v):
-    if hasattr(v, "item"):
-        return v.item()
-    if isinstance(v, tuple):
-        return list(v)
+def json_default(v):
+    """``default`` of json.dump for results: NumPy numbers and arrays as numbers and lists, anything
+    else json does not know as its text."""
+    if hasattr(v, "tolist"):
+        return v.tolist()
     return str(v)
 
 
@@ -625,7 +625,7 @@ def write_summary(out, sweep, records):
     done = sum(r["status"] in FINISHED for r in rows)
     lines = [f"# Sweep {os.path.basename(sweep.path)}", "",
              f"{done} of {len(rows)} runs finished. nMSE: normalised mean squared error over the predicted steps "
-             "(validation: each file's held-out split; test: the sweep's test files).", "",
+             "(validation: each file's held-out split; test: the run's test files).", "",
              "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     lines += ["| " + " | ".join(_cell(r[c]) for c in COLUMNS) + " |" for r in rows]
     _write(os.path.join(out, "summary.md"), "\n".join(lines) + "\n")
