@@ -325,10 +325,12 @@ def test_test_points_on_dask(data, farm, tmp_path):
     check_points(records, tmp_path)
 
 
-def test_a_killed_sweep_resumes_its_half_finished_training(data, tmp_path):
-    """Killed mid-training (the command and its pool process at once), a sweep run on the local
-    pool continues from its checkpoint next time: the log keeps the epochs before it, byte for
-    byte (a new start would rewrite them with other times), and the test points recorded stay."""
+@pytest.mark.parametrize("stop", [signal.SIGKILL, signal.SIGINT], ids=["killed", "ctrl-c"])
+def test_a_stopped_sweep_resumes_its_half_finished_training(data, tmp_path, stop):
+    """Killed mid-training (the command and its pool process at once), or stopped by Ctrl-C, a
+    sweep run on the local pool continues from its checkpoint next time: the log keeps the epochs
+    before it, byte for byte (a new start would rewrite them with other times), and the test
+    points recorded stay."""
     (data / "long.toml").write_text('data = ["train.h5"]\ntest = ["test.h5"]\n[train]\nepochs = 4000\n'
                                     'checkpoint_seconds = 0.3\n[[run]]\nname = "long"\ntest_points = 4\n')
     out = tmp_path / "out"
@@ -344,15 +346,21 @@ def test_a_killed_sweep_resumes_its_half_finished_training(data, tmp_path):
                     and len(log.read_text().splitlines()) > 1500:
                 break
             time.sleep(0.05)
-        assert proc.poll() is None, "the sweep finished before it could be killed: " + proc.stderr.read().decode()
+        assert proc.poll() is None, "the sweep finished before it could be stopped: " + proc.stderr.read().decode()
+        os.killpg(proc.pid, stop)  # as Ctrl-C in a terminal reaches the command and its pool process
+        assert proc.wait(timeout=120) == (130 if stop == signal.SIGINT else -signal.SIGKILL)
     finally:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
     with np.load(state) as checkpoint:
         resumed_at = int(checkpoint["epoch"])
     before = log.read_text().splitlines(keepends=True)
     points = {p: (folder / "points" / p).read_bytes() for p in os.listdir(folder / "points")}
     assert 1000 <= resumed_at < 4000 and not (folder / "result.json").exists()
+    if stop == signal.SIGINT:  # the training saw Ctrl-C and saved its last finished epoch (or the one
+        # before, when Ctrl-C came between that epoch's log line and its snapshot), not an older checkpoint
+        assert resumed_at >= json.loads(before[-1])["epoch"] - 1
 
     again = subprocess.run(args, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr[-3000:]

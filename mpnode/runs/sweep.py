@@ -344,6 +344,8 @@ def _train(plan, segment, resume, tests, test_names, folder):
             continue
         result = segment(stop, resume)
         resume = True
+        if result.status == "interrupted":  # Ctrl-C: no point here; the next invocation resumes
+            break
         if plan["test_points"]:
             points.append(_test_point(result, tests, test_names, folder))
         if result.status != "completed":
