@@ -1,0 +1,61 @@
+"""Compile the engine's four drivers (rollout and VJP, block and stagewise) for one dtype into
+numba's on-disk cache:  python tests/warm_kernels.py float32 LOCK_FILE
+
+tests/conftest.py runs this once per dtype, the two at once, the first time a test calls the
+compiled kernels (see "Compiling the kernels on both cores" there).  Every model kind and size
+runs the same compiled driver for a dtype, so one tiny rollout and VJP per driver compiles
+everything the suite calls.
+"""
+import sys
+
+import numpy as np
+
+#: exit status when numba's cache writes cannot be serialised here: nothing was compiled, and
+#: the tests compile the kernels themselves, as they would without this script
+CANNOT_LOCK = 3
+
+
+def serialise_cache_writes(lock_path):
+    """Make each numba cache write hold an exclusive lock on ``lock_path``.
+
+    numba writes a function's cache by reading its index, adding an entry and rewriting it,
+    with no lock: two processes adding overloads of one function at the same moment can
+    lose an entry or, worse, leave an index entry naming the other's compiled code (numba
+    issue 4807).  The warm-up processes save overloads of the same functions (float32 and
+    float64), so their writes take turns.
+    """
+    import fcntl
+
+    from numba.core.caching import IndexDataCacheFile
+
+    save = IndexDataCacheFile.save
+
+    def locked_save(self, key, data):
+        with open(lock_path, "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            return save(self, key, data)  # closing the file releases the lock
+
+    IndexDataCacheFile.save = locked_save
+
+
+def warm(dtype):
+    """One rollout and one VJP through each driver in ``dtype``."""
+    from mpnode.base.graph import Graph
+    from mpnode.engine import forward_with_vjp
+    from mpnode.model import Model
+
+    model = Model.create(state_dim=2, message_dim=2, hidden=4, dt=0.1)
+    theta = model.theta.astype(dtype)
+    graph = Graph.from_edges(3, [(0, 1), (1, 2)])
+    for driver in ("blocks", "stagewise"):
+        x, vjp = forward_with_vjp(model.spec, theta, np.zeros((3, 2)), graph, None, 1, driver=driver)
+        vjp(np.zeros_like(x))
+
+
+if __name__ == "__main__":
+    try:
+        serialise_cache_writes(sys.argv[2])
+    except (ImportError, AttributeError) as e:  # no fcntl (Windows), or a numba whose cache works otherwise
+        print(f"cannot serialise numba's cache writes here ({e}): nothing compiled", file=sys.stderr)
+        sys.exit(CANNOT_LOCK)
+    warm(np.dtype(sys.argv[1]))
