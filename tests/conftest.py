@@ -1,17 +1,24 @@
-"""Fixtures shared by the tests, and the compilation of the kernels on both cores.
+"""What the tests share: fixtures, and the compiling of the kernels on both cores.
+
+Fixtures (``pytest --fixtures tests`` lists them with their docstrings):
+- ``tiny_linear``, ``tiny_file``, ``fresh``: the tiny test system (two coupled damped
+  oscillators, exact solution), as trajectories, as a trajectory file, and an untrained model for it;
+- ``driver``: run an engine test with each driver (block and stagewise) and check that it ran;
+  ``driver_calls``: the drivers a test called.
+Plain helpers for the engine tests (the NumPy reference, test graphs) are in engine_helpers.py.
 
 Compiling the kernels on both cores.  With a cold numba cache, compiling dominates the suite:
 each of the four drivers (mpnode.engine.kernels: rollout and VJP, block and stagewise) is
 compiled for float32 and float64, one function at a time, about a minute and a half per dtype
-on this project's 2-core machine.  So the first call to a driver in this process
-(`_KernelWarmUp`) starts two processes, tests/warm_kernels.py float64 and float32, which compile
-the drivers into numba's on-disk cache on one core each, waits for them, and goes on: numba
-then loads each driver from the cache, as in any second run, so the tests run the very code
-they would have compiled (same functions, same types, same flags).  With a warm cache the two
-processes only load it (a second or two).  The warm-up cannot stall or change the suite: if a
-process fails, or has not finished after WARM_UP_TIMEOUT, it is stopped and the tests compile
-what they need themselves, as without it; the terminal summary says what happened.  The
-drivers are wrapped here for that only; the wrapper passes every call through unchanged.
+on a 2-core machine.  So the first call to a driver in this process (`_KernelWarmUp`) starts
+two processes, tests/warm_kernels.py float64 and float32, which compile the drivers into
+numba's on-disk cache on one core each, waits for them, and goes on: numba then loads each
+driver from the cache, as in any second run, so the tests run the very code they would have
+compiled (same functions, same types, same flags).  With a warm cache the two processes only
+load it (a second or two).  The warm-up cannot stall or change the suite: if a process fails,
+or has not finished after WARM_UP_TIMEOUT, it is stopped and the tests compile what they
+need themselves, as without it; the terminal summary says what happened.  The drivers are
+wrapped here for that only; the wrapper passes every call through unchanged.
 """
 import copy
 import os
@@ -22,9 +29,15 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
+import scipy.linalg
 
+from mpnode.base.graph import Graph
+from mpnode.data import Trajectories, write_trajectories
 from mpnode.engine import kernels, rollout
+from mpnode.model import Model
+from mpnode.training import batches
 
 DRIVER_ENTRY_POINTS = ("rollout_blocks", "rollout_stagewise", "vjp_blocks", "vjp_stagewise")
 WARM_UP = Path(__file__).with_name("warm_kernels.py")
@@ -103,6 +116,9 @@ def pytest_terminal_summary(terminalreporter):
         terminalreporter.write_line(_warm_up.report)
 
 
+# ---------------------------------------------------------------------------
+# Which driver ran
+# ---------------------------------------------------------------------------
 def _spy(fn, name, calls):
     def wrapper(*args, **kwargs):
         calls.append(name)
@@ -111,12 +127,18 @@ def _spy(fn, name, calls):
     return wrapper
 
 
-@pytest.fixture(params=["blocks", "stagewise"])
-def driver(request, monkeypatch):
-    """Run the test with the given driver; afterwards check that only that driver ran."""
+@pytest.fixture
+def driver_calls(monkeypatch):
+    """The names of the kernel drivers the test called, in order (a spy on each entry point)."""
     calls = []
     for name in DRIVER_ENTRY_POINTS:
         monkeypatch.setattr(kernels, name, _spy(getattr(kernels, name), name, calls))
+    return calls
+
+
+@pytest.fixture(params=["blocks", "stagewise"])
+def driver(request, monkeypatch, driver_calls):
+    """Run the test with the given driver; afterwards check that only that driver ran."""
     if request.param == "stagewise":
         real_plan_for = rollout.plan_for
 
@@ -127,5 +149,68 @@ def driver(request, monkeypatch):
 
         monkeypatch.setattr(rollout, "plan_for", stagewise_plan)
     yield request.param
-    assert calls, "no driver ran"
-    assert all(c.endswith(request.param) for c in calls), f"expected the {request.param} driver, ran {calls}"
+    assert driver_calls, "no driver ran"
+    assert all(c.endswith(request.param) for c in driver_calls), \
+        f"expected the {request.param} driver, ran {driver_calls}"
+
+
+# ---------------------------------------------------------------------------
+# The tiny test system: two damped oscillators coupled by a spring
+# ---------------------------------------------------------------------------
+def _tiny_linear(B=24, T=10, dt=0.1, seed=0, offset=0.0):
+    A = np.array([[-0.1, 1.0], [-1.0, -0.1]])
+    k = 0.5
+    M = scipy.linalg.block_diag(A, A)
+    M[0, 0] -= k
+    M[0, 2] += k
+    M[2, 2] -= k
+    M[2, 0] += k
+    E = scipy.linalg.expm(M * dt)
+    rng = np.random.default_rng(seed)
+    x = np.empty((B, T + 1, 4))
+    x[:, 0] = rng.uniform(-1, 1, (B, 4))
+    for t in range(T):
+        x[:, t + 1] = x[:, t] @ E.T
+    return Trajectories(x=x.reshape(B, T + 1, 2, 2) + offset, graphs=[Graph.from_edges(2, [(0, 1)])], dt=dt,
+                        system="tiny_linear")
+
+
+@pytest.fixture
+def tiny_linear():
+    """tiny_linear(B=24, T=10, dt=0.1, seed=0, offset=0.0) -> Trajectories of the tiny system.
+
+    Two damped oscillators coupled by a spring on their first coordinate, sampled from the
+    exact solution: x (B, T+1, 2, 2), node i has (position, velocity), dx/dt = A x_i +
+    k (x_j - x_i) on the position; initial states uniform in [-1, 1] drawn from ``seed``.
+    """
+    return _tiny_linear
+
+
+@pytest.fixture
+def tiny_file(tiny_linear):
+    """tiny_file(path, **tiny_linear's options) -> str(path), the tiny system's trajectories written there."""
+    def write(path, **kw):
+        write_trajectories(path, tiny_linear(**kw))
+        return str(path)
+
+    return write
+
+
+@pytest.fixture
+def fresh():
+    """fresh(seed=0, hidden=16) -> an untrained float32 Model for the tiny system (dx 2, messages of 3, dt 0.1)."""
+    def create(seed=0, hidden=16):
+        return Model.create(2, 0, message_dim=3, hidden=hidden, dt=0.1, seed=seed)
+
+    return create
+
+
+@pytest.fixture
+def prepared():
+    """prepared(model, datasets, config) -> (train parts, val parts, split) of ``datasets`` under
+    ``config``, ``model``'s normalisation set as training sets it."""
+    def prepare(model, datasets, config):
+        data = batches.TrainingData(datasets, config)
+        return (*data.parts(model, config.norm), data.split)
+
+    return prepare

@@ -5,7 +5,6 @@ import os
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_train import tiny_file
 
 from cli.main import main
 from mpnode.data import read_trajectories
@@ -18,7 +17,7 @@ def run(*args):
     return CliRunner().invoke(main, [str(a) for a in args])
 
 
-def test_train_writes_model_log_and_checkpoint(tmp_path):
+def test_train_writes_model_log_and_checkpoint(tmp_path, tiny_file):
     data = tiny_file(tmp_path / "d.h5")
     out = tmp_path / "m.h5"
     res = run("train", data, "-o", out, "--epochs", 3, "--hidden", 8, "--message-dim", 2, "--dtype", "float64",
@@ -33,7 +32,7 @@ def test_train_writes_model_log_and_checkpoint(tmp_path):
     assert os.path.exists(f"{out}.state")
 
 
-def test_resume_through_the_cli_matches_a_straight_run(tmp_path):
+def test_resume_through_the_cli_matches_a_straight_run(tmp_path, tiny_file):
     data = tiny_file(tmp_path / "d.h5")
     assert run("train", data, "-o", tmp_path / "a.h5", "--epochs", 6, *QUICK).exit_code == 0
     assert run("train", data, "-o", tmp_path / "b.h5", "--epochs", 3, *QUICK).exit_code == 0
@@ -45,7 +44,7 @@ def test_resume_through_the_cli_matches_a_straight_run(tmp_path):
     assert res.exit_code == 2 and "does not exist" in res.output
 
 
-def test_finetune_keeps_weights_and_normalisation(tmp_path):
+def test_finetune_keeps_weights_and_normalisation(tmp_path, tiny_file):
     data = tiny_file(tmp_path / "d.h5")
     other = tiny_file(tmp_path / "e.h5", seed=4, offset=0.5)
     assert run("train", data, "-o", tmp_path / "m.h5", "--epochs", 2, *QUICK).exit_code == 0
@@ -61,7 +60,7 @@ def test_finetune_keeps_weights_and_normalisation(tmp_path):
     assert f1.attrs["finetuned_from"].endswith("m.h5")
 
 
-def test_huge_learning_rate_exits_3_with_a_clear_message(tmp_path):
+def test_huge_learning_rate_exits_3_with_a_clear_message(tmp_path, tiny_file):
     data = tiny_file(tmp_path / "d.h5")
     res = run("train", data, "-o", tmp_path / "m.h5", "--epochs", 50, "--batch-size", 8, "--lr", 1e3)
     assert res.exit_code == 3
@@ -69,7 +68,7 @@ def test_huge_learning_rate_exits_3_with_a_clear_message(tmp_path):
     assert np.all(np.isfinite(Model.load(tmp_path / "m.h5").theta))
 
 
-def test_bad_inputs_exit_2(tmp_path):
+def test_bad_inputs_exit_2(tmp_path, tiny_file):
     data = tiny_file(tmp_path / "d.h5")
     res = run("train", tmp_path / "nope.h5", "-o", tmp_path / "m.h5")
     assert res.exit_code == 2 and "nope.h5" in res.output
@@ -144,7 +143,7 @@ def test_the_recipe_fills_what_the_user_leaves_unset(tmp_path):
     assert res.exit_code == 0 and Model.load(tmp_path / "sum.h5").spec.aggregation.mlp == "sum"
 
 
-def test_the_recipes_batch_sizes_fill_train_and_finetune(tmp_path):
+def test_the_recipes_batch_sizes_fill_train_and_finetune(tmp_path, tiny_file):
     from mpnode.training.recipes import finetune_recipe, recipe
 
     data = tiny_file(tmp_path / "d.h5")
@@ -175,7 +174,7 @@ def test_the_recipes_batch_sizes_fill_train_and_finetune(tmp_path):
 
 
 @pytest.mark.parametrize("kind", ["l2s", "node"])
-def test_every_command_takes_every_kind(tmp_path, kind):
+def test_every_command_takes_every_kind(tmp_path, kind, tiny_file):
     data = tiny_file(tmp_path / "d.h5")
     out = tmp_path / f"{kind}.h5"
     res = run("train", data, "-o", out, "--model", kind, "--epochs", 2, "--hidden", 8, *QUICK)

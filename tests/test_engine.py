@@ -15,7 +15,6 @@ import dataclasses
 import numba
 import numpy as np
 import pytest
-from conftest import DRIVER_ENTRY_POINTS, _spy
 from engine_helpers import (
     loss_ref,
     make_graph,
@@ -181,17 +180,14 @@ def test_reference_aggregation_semantics():
     np.testing.assert_array_equal(numpy_engine.empty_rows(spec_(), g), [False, True, False, True])
 
 
-def test_one_big_graph_runs_stagewise_and_matches_reference(monkeypatch):
+def test_one_big_graph_runs_stagewise_and_matches_reference(driver_calls):
     """No forcing: a connected graph with M >= 2*TILE*threads goes to the stagewise driver."""
-    calls = []
-    for name in DRIVER_ENTRY_POINTS:
-        monkeypatch.setattr(kernels, name, _spy(getattr(kernels, name), name, calls))
     n = 2 * kernels.TILE * numba.get_num_threads() + 40
     graph = make_graph(np.random.default_rng(5), n)
     spec = spec_(self_messages=True, substeps=2)
     theta, x0, u = problem(spec, graph, 2)
     got = engine.forward(spec, theta, x0, graph, u, 2)
-    assert calls == ["rollout_stagewise"]
+    assert driver_calls == ["rollout_stagewise"]
     np.testing.assert_allclose(got, rollout_ref(spec, theta, x0, graph, u, 2), rtol=1e-12, atol=1e-12)
 
 

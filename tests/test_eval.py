@@ -4,7 +4,6 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_train import fresh, tiny_linear
 
 from cli.main import main
 from mpnode import training as train
@@ -15,14 +14,19 @@ from mpnode.evaluation.metrics import blow_up_mask, nmse_per_step
 from mpnode.model import Model
 
 
-def model_made_data(model, B=6, T=8, seed=0):
-    """Trajectories the model produces itself (float64): a perfect model for them."""
-    traj = tiny_linear(B=B, T=T, seed=seed)
-    x = model.rollout(traj.x[:, 0], traj.graphs[0], steps=T).astype(np.float64)
-    return Trajectories(x=x, graphs=traj.graphs, dt=model.spec.dt, system="model_made")
+@pytest.fixture
+def model_made_data(tiny_linear):
+    """model_made_data(model, B=6, T=8, seed=0): trajectories the model produces itself (float64),
+    from the tiny system's initial states: a perfect model for them."""
+    def make(model, B=6, T=8, seed=0):
+        traj = tiny_linear(B=B, T=T, seed=seed)
+        x = model.rollout(traj.x[:, 0], traj.graphs[0], steps=T).astype(np.float64)
+        return Trajectories(x=x, graphs=traj.graphs, dt=model.spec.dt, system="model_made")
+
+    return make
 
 
-def test_nmse_is_zero_for_the_model_own_trajectories():
+def test_nmse_is_zero_for_the_model_own_trajectories(fresh, model_made_data):
     m = fresh().copy(dtype=np.float64)
     traj = model_made_data(m)
     r = evaluate(m, traj)
@@ -53,7 +57,7 @@ def test_nmse_definition_and_blow_up_detection():
     assert not blow_up_mask(inside, truth).any()
 
 
-def test_eval_error_of_a_converged_model_is_small():
+def test_eval_error_of_a_converged_model_is_small(tiny_linear, fresh):
     # The linear test system is easy; 150 epochs at lr 1e-2 bring the validation loss below 1e-2
     # (the data's own loss scale is ~5).  A normalised MSE of 0.02 means the rollouts explain 98% of
     # the states' variance over the whole horizon; an untrained model scores ~1 (see the assert).
@@ -67,7 +71,7 @@ def test_eval_error_of_a_converged_model_is_small():
     assert untrained.nmse > 0.3
 
 
-def test_mismatched_dimensions_and_dt_are_input_errors():
+def test_mismatched_dimensions_and_dt_are_input_errors(tiny_linear, fresh):
     m = fresh()
     x3 = np.zeros((2, 4, 2, 3))
     wrong_dx = Trajectories(x=x3, graphs=tiny_linear().graphs, dt=0.1, system="x")
@@ -80,7 +84,7 @@ def test_mismatched_dimensions_and_dt_are_input_errors():
     assert np.isfinite(r.nmse)
 
 
-def test_prediction_file_keeps_graphs_and_names_the_model(tmp_path):
+def test_prediction_file_keeps_graphs_and_names_the_model(tmp_path, tiny_linear, fresh):
     m = fresh()
     traj = tiny_linear(B=4)
     r = evaluate(m, traj)
@@ -99,7 +103,7 @@ def test_prediction_file_keeps_graphs_and_names_the_model(tmp_path):
         predictions_file(bad, traj.graphs, traj.graph_index, traj.dt, traj.system, "m.h5")
 
 
-def test_cli_eval_text_json_predictions_and_dx_mismatch(tmp_path):
+def test_cli_eval_text_json_predictions_and_dx_mismatch(tmp_path, tiny_linear, fresh):
     m = fresh()
     m.save(tmp_path / "m.h5")
     write_trajectories(tmp_path / "d.h5", tiny_linear(B=5))

@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_train import tiny_file, tiny_linear
 
 from cli.main import main
 from mpnode.base import atomic
@@ -26,7 +25,7 @@ def umask_022():
     os.umask(old)
 
 
-def test_written_files_get_the_umask_mode_like_open(tmp_path, umask_022):
+def test_written_files_get_the_umask_mode_like_open(tmp_path, umask_022, tiny_linear):
     """0666 less the umask, as open(path, 'w') gives -- not mkstemp's 0600."""
     plain = tmp_path / "plain.txt"
     open(plain, "w").close()
@@ -46,7 +45,7 @@ def test_replacing_a_file_keeps_its_mode(tmp_path, umask_022):
     assert mode(path) == 0o640
 
 
-def test_training_files_get_the_umask_mode(tmp_path, umask_022):
+def test_training_files_get_the_umask_mode(tmp_path, umask_022, tiny_file):
     data = Path(tiny_file(tmp_path / "d.h5"))
     out = tmp_path / "m.h5"
     res = CliRunner().invoke(main, ["train", str(data), "-o", str(out), "--epochs", "2", "--hidden", "4"])
@@ -55,7 +54,7 @@ def test_training_files_get_the_umask_mode(tmp_path, umask_022):
         assert mode(p) == 0o644, p
 
 
-def test_atomic_write_is_flushed_to_disk_before_and_after_the_rename(tmp_path, monkeypatch):
+def test_atomic_write_is_flushed_to_disk_before_and_after_the_rename(tmp_path, monkeypatch, tiny_linear):
     """The file's data, then the folder's entry: fsync of the temporary file before it is
     renamed onto the target, and of the folder afterwards."""
     events = []
@@ -92,7 +91,7 @@ def run(*args):
     return CliRunner().invoke(main, [str(a) for a in args])
 
 
-def test_train_refuses_to_write_the_model_over_its_data(tmp_path):
+def test_train_refuses_to_write_the_model_over_its_data(tmp_path, tiny_file):
     data = Path(tiny_file(tmp_path / "d.h5"))
     before = data.read_bytes()
     for out in (data, tmp_path / "sub" / ".." / "d.h5"):
@@ -110,7 +109,7 @@ def test_train_refuses_to_write_the_model_over_its_data(tmp_path):
     assert not os.path.exists(tmp_path / "m.h5")
 
 
-def test_eval_refuses_to_write_predictions_over_the_truth_or_the_model(tmp_path):
+def test_eval_refuses_to_write_predictions_over_the_truth_or_the_model(tmp_path, tiny_file):
     data = Path(tiny_file(tmp_path / "d.h5"))
     Model.create(2, 0, message_dim=3, hidden=8, dt=0.1).save(tmp_path / "m.h5")
     truth = read_trajectories(data).x.copy()
@@ -121,7 +120,7 @@ def test_eval_refuses_to_write_predictions_over_the_truth_or_the_model(tmp_path)
     Model.load(tmp_path / "m.h5")
 
 
-def test_finetune_and_simulate_refuse_to_overwrite_their_model(tmp_path):
+def test_finetune_and_simulate_refuse_to_overwrite_their_model(tmp_path, tiny_file):
     data = Path(tiny_file(tmp_path / "d.h5"))
     Model.create(2, 0, message_dim=3, hidden=8, dt=0.1).save(tmp_path / "m.h5")
     before = (tmp_path / "m.h5").read_bytes()

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from engine_helpers import rollout_ref
-from test_train import tiny_file
 
 from cli.main import main
 from mpnode.base.graph import Graph
@@ -47,7 +46,7 @@ def rollout_from_file(path, traj):
                                         ("mpnode", ["--aggregate", "mean", "--linear-aggregation", "scaled"]),
                                         ("mpnode", ["--aggregate", "mean", "--linear-aggregation", "scaled",
                                                     "--linear-target", "state"])])
-def test_a_rollout_from_the_file_alone_reproduces_eval_predictions(tmp_path, kind, extra):
+def test_a_rollout_from_the_file_alone_reproduces_eval_predictions(tmp_path, kind, extra, tiny_file):
     data = tiny_file(tmp_path / "d.h5", B=6)
     model = tmp_path / "m.h5"
     run = CliRunner().invoke
@@ -63,7 +62,7 @@ def test_a_rollout_from_the_file_alone_reproduces_eval_predictions(tmp_path, kin
     assert np.abs(mine[:, -1] - mine[:, 0]).max() > 1e-2 * scale  # it moves
 
 
-def test_the_reference_rollout_sees_graph_structure(tmp_path):
+def test_the_reference_rollout_sees_graph_structure(tmp_path, tiny_file):
     """Control: the file-only rollout depends on the graph for mpnode/l2s (so the agreement
     above is not vacuous), and not for node."""
     from mpnode.model import Model

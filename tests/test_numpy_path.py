@@ -122,9 +122,7 @@ def test_without_numba_a_model_still_rolls_out_and_steps(tmp_path):
     np.testing.assert_allclose(np.load(tmp_path / "x.npy"), compiled, rtol=1e-12, atol=1e-12 * np.abs(compiled).max())
 
 
-def test_without_numba_the_cli_evaluates(tmp_path):
-    from test_train import tiny_file
-
+def test_without_numba_the_cli_evaluates(tmp_path, tiny_file):
     data = tiny_file(tmp_path / "d.h5", B=3)
     Model.create(2, 0, message_dim=3, hidden=8, dt=0.1, dtype=np.float32).save(tmp_path / "m.h5")
     res = run_python(BLOCK_NUMBA + """

@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_train import fresh, tiny_file, tiny_linear
 
 from cli.main import main
 from mpnode.base.graph import Graph
@@ -36,7 +35,7 @@ def assert_report_figure(path):
 
 
 @pytest.fixture
-def model_and_data(tmp_path):
+def model_and_data(tmp_path, tiny_file, fresh):
     fresh().save(tmp_path / "m.h5")
     return tmp_path / "m.h5", tiny_file(tmp_path / "d.h5", B=5)
 
@@ -66,7 +65,7 @@ def test_simulate_plot(tmp_path):
     assert s.attrs["state_names"] == ["angle (rad)", "angular velocity (rad/s)"]  # the scene's system names them
 
 
-def test_train_and_finetune_plot(tmp_path):
+def test_train_and_finetune_plot(tmp_path, tiny_file):
     pytest.importorskip("matplotlib")
     data = tiny_file(tmp_path / "d.h5")
     res = run("train", data, "-o", tmp_path / "m.h5", "--epochs", 4, "--hidden", 8, "--batch-size", 32,
@@ -80,7 +79,7 @@ def test_train_and_finetune_plot(tmp_path):
     assert Path(tmp_path / "f.svg").read_text().lstrip().startswith("<?xml")
 
 
-def test_a_diverged_run_still_gets_its_figure(tmp_path):
+def test_a_diverged_run_still_gets_its_figure(tmp_path, tiny_file):
     pytest.importorskip("matplotlib")
     data = tiny_file(tmp_path / "d.h5")
     res = run("train", data, "-o", tmp_path / "m.h5", "--epochs", 50, "--batch-size", 8, "--lr", 1e3,
@@ -116,7 +115,7 @@ def test_without_matplotlib_plot_stops_before_any_work(tmp_path, model_and_data,
     assert run("eval", model, data, "--reference-sample", 0).exit_code == 0
 
 
-def test_bad_plot_paths_exit_2_before_any_work(tmp_path, model_and_data):
+def test_bad_plot_paths_exit_2_before_any_work(tmp_path, model_and_data, tiny_file):
     pytest.importorskip("matplotlib")
     model, data = model_and_data
     res = run("eval", model, data, "--plot", tmp_path / "e.h5")
@@ -139,7 +138,7 @@ def texts(fig):
     return {t.get_text().strip() for t in fig.findobj(lambda a: hasattr(a, "get_text")) if t.get_text().strip()}
 
 
-def test_eval_figure_shows_names_time_units_and_the_horizon(tmp_path):
+def test_eval_figure_shows_names_time_units_and_the_horizon(tmp_path, tiny_linear, fresh):
     pytest.importorskip("matplotlib")
     from mpnode.evaluation.evaluate import evaluate
     from mpnode.plot import plot_eval

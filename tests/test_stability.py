@@ -5,7 +5,6 @@ import json
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_train import fresh, tiny_linear
 
 from cli.main import main
 from mpnode.data import Trajectories, read_trajectories, write_trajectories
@@ -13,31 +12,41 @@ from mpnode.evaluation.evaluate import evaluate, predictable_horizon
 from mpnode.evaluation.stepsize import choose_substeps, doubling_estimate
 
 
-def fast_model(scale):
-    """The tiny test model with its output layer scaled: dx/dt ~ scale, so the ODE is fast (stiff for RK4)."""
-    m = fresh(hidden=16).copy()
-    p = m.params
-    p["W3"][:] *= scale
-    p["b3"][:] = 0.3 * scale
-    return m
+@pytest.fixture
+def fast_model(fresh):
+    """fast_model(scale): the tiny test model with its output layer scaled: dx/dt ~ scale, so the
+    ODE is fast (stiff for RK4)."""
+    def make(scale):
+        m = fresh(hidden=16).copy()
+        p = m.params
+        p["W3"][:] *= scale
+        p["b3"][:] = 0.3 * scale
+        return m
+
+    return make
 
 
-def oscillator_model(w, damping=0.5, eps=0.05):
-    """A model whose field is (nearly) linear: dx/dt = A x with A = [[-damping, w], [-w, -damping]] per node.
+@pytest.fixture
+def oscillator_model(fresh):
+    """oscillator_model(w, damping=0.5, eps=0.05): a model whose field is (nearly) linear:
+    dx/dt = A x with A = [[-damping, w], [-w, -damping]] per node.
 
     Small first-layer weights keep both tanh layers in their linear range; the output layer
     undoes the scale.  For w = 40 and dt = 0.1, h w = 4 is outside RK4's stability interval
     on the imaginary axis (|z| <= 2.83): one substep blows up, two do not.
     """
-    m = fresh(hidden=16).copy()
-    p = m.params
-    for a in p.values():
-        a[:] = 0
-    A = np.array([[-damping, w], [-w, -damping]])
-    p["W1"][:2, :2] = eps * np.eye(2)
-    p["W2"][:] = np.eye(16)
-    p["W3"][:2, :2] = A.T / eps
-    return m
+    def make(w, damping=0.5, eps=0.05):
+        m = fresh(hidden=16).copy()
+        p = m.params
+        for a in p.values():
+            a[:] = 0
+        A = np.array([[-damping, w], [-w, -damping]])
+        p["W1"][:2, :2] = eps * np.eye(2)
+        p["W2"][:] = np.eye(16)
+        p["W3"][:2, :2] = A.T / eps
+        return m
+
+    return make
 
 
 def fine_rollout(model, x0, graph, steps, substeps=64):
@@ -47,7 +56,7 @@ def fine_rollout(model, x0, graph, steps, substeps=64):
 # ---------------------------------------------------------------------------
 # --substeps auto
 # ---------------------------------------------------------------------------
-def test_auto_substeps_on_a_fast_field_matches_a_fine_reference():
+def test_auto_substeps_on_a_fast_field_matches_a_fine_reference(tiny_linear, fast_model):
     traj = tiny_linear(B=8, T=20)
     m = fast_model(20)
     s, report = choose_substeps(m, traj.x[:, 0], traj.graphs[0], tol=1e-4, horizon=20)
@@ -63,7 +72,7 @@ def test_auto_substeps_on_a_fast_field_matches_a_fine_reference():
     assert np.abs(coarse - ref).max() > 1e-4
 
 
-def test_auto_substeps_on_a_slow_field_is_one_and_reports_when_the_tolerance_is_out_of_reach():
+def test_auto_substeps_on_a_slow_field_is_one_and_reports_when_the_tolerance_is_out_of_reach(tiny_linear, fast_model):
     traj = tiny_linear(B=8, T=20)
     s, report = choose_substeps(fast_model(1), traj.x[:, 0], traj.graphs[0], horizon=20)
     assert s == 1 and report["reached"] and list(report["estimates"]) == ["1"]
@@ -75,18 +84,23 @@ def test_auto_substeps_on_a_slow_field_is_one_and_reports_when_the_tolerance_is_
 # ---------------------------------------------------------------------------
 # A step too large for stability
 # ---------------------------------------------------------------------------
-def fast_data(tmp_path, w=40, T=20):
-    """A fast oscillator model saved to m.h5 and its own fine (64-substep) trajectories in d.h5."""
-    m = oscillator_model(w)
-    base = tiny_linear(B=6, T=T)
-    x = fine_rollout(m, base.x[:, 0], base.graphs[0], T)
-    traj = Trajectories(x=x, graphs=base.graphs, dt=m.spec.dt, system="fast_model")
-    m.save(tmp_path / "m.h5")
-    write_trajectories(tmp_path / "d.h5", traj)
-    return m, traj
+@pytest.fixture
+def fast_data(oscillator_model, tiny_linear):
+    """fast_data(tmp_path, w=40, T=20): a fast oscillator model saved to m.h5 and its own fine
+    (64-substep) trajectories in d.h5."""
+    def make(tmp_path, w=40, T=20):
+        m = oscillator_model(w)
+        base = tiny_linear(B=6, T=T)
+        x = fine_rollout(m, base.x[:, 0], base.graphs[0], T)
+        traj = Trajectories(x=x, graphs=base.graphs, dt=m.spec.dt, system="fast_model")
+        m.save(tmp_path / "m.h5")
+        write_trajectories(tmp_path / "d.h5", traj)
+        return m, traj
+
+    return make
 
 
-def test_step_too_large_is_detected_and_more_substeps_fix_it(tmp_path):
+def test_step_too_large_is_detected_and_more_substeps_fix_it(tmp_path, fast_model, fast_data):
     m, traj = fast_data(tmp_path)
     r = evaluate(m, traj)
     assert r.n_bad > 0 and r.substeps == 1
@@ -105,7 +119,7 @@ def test_step_too_large_is_detected_and_more_substeps_fix_it(tmp_path):
     assert r.n_bad > 0 and not r.stability["step_too_large"] and "not a step-size problem" in r.stability["message"]
 
 
-def test_cli_eval_reports_step_too_large_and_auto_substeps(tmp_path):
+def test_cli_eval_reports_step_too_large_and_auto_substeps(tmp_path, fast_data):
     fast_data(tmp_path)
     runner = CliRunner()
     m, d = str(tmp_path / "m.h5"), str(tmp_path / "d.h5")
@@ -131,7 +145,7 @@ def test_cli_eval_reports_step_too_large_and_auto_substeps(tmp_path):
     assert "step-doubling" in runner.invoke(main, ["eval", "--help"]).output
 
 
-def test_cli_simulate_auto_substeps_and_step_too_large(tmp_path):
+def test_cli_simulate_auto_substeps_and_step_too_large(tmp_path, oscillator_model):
     oscillator_model(80).with_spec(dt=0.05).save(tmp_path / "m.h5")
     runner = CliRunner()
     args = ["simulate", str(tmp_path / "m.h5"), "coupled_pendulum", "-B", "4", "-T", "40"]
@@ -170,7 +184,7 @@ def test_predictable_horizon_on_a_known_divergence():
     assert h["0.1"]["median_step"] is None and h["0.1"]["beyond_horizon"] == B
 
 
-def test_eval_reports_the_predictable_horizon(tmp_path):
+def test_eval_reports_the_predictable_horizon(tmp_path, fast_data):
     m, traj = fast_data(tmp_path, w=20, T=30)
     runner = CliRunner()
     res = runner.invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d.h5"), "--json"])
@@ -195,13 +209,11 @@ def test_window_starts_cover_the_horizon_with_consecutive_windows():
     assert list(window_starts(10, 1)) == list(range(10))
 
 
-def test_window_part_cuts_every_trajectory_into_windows_from_true_states():
+def test_window_part_cuts_every_trajectory_into_windows_from_true_states(tiny_linear, fresh, prepared):
     from mpnode import training as train
 
     traj = tiny_linear(B=6, T=10)
     m = fresh()
-    from test_train import prepared
-
     tr, _, _ = prepared(m, [traj], train.TrainConfig(val_split=0.0, noise=0.0))
     part = tr[0]
     w = part.windows(4)  # starts 0, 4, 6
@@ -217,7 +229,7 @@ def test_window_part_cuts_every_trajectory_into_windows_from_true_states():
 CURRICULUM = dict(batch_size=8, lr=1e-2, curriculum=(2, 5), curriculum_epochs=2)
 
 
-def test_curriculum_trains_logs_window_lengths_and_resumes_bit_for_bit(tmp_path):
+def test_curriculum_trains_logs_window_lengths_and_resumes_bit_for_bit(tmp_path, tiny_linear, fresh):
     from mpnode import training as train
     from mpnode.training import log as train_log
     from mpnode.training import state as train_state
@@ -242,9 +254,7 @@ def test_curriculum_trains_logs_window_lengths_and_resumes_bit_for_bit(tmp_path)
     assert strip(train_log.read_log(train_log.log_path(tmp_path / "b.h5"))) == strip(log)
 
 
-def test_cli_horizon_curriculum_flags(tmp_path):
-    from test_train import tiny_file
-
+def test_cli_horizon_curriculum_flags(tmp_path, tiny_file):
     data = tiny_file(tmp_path / "d.h5", B=12, T=10)
     out = tmp_path / "m.h5"
     res = CliRunner().invoke(main, ["train", data, "-o", str(out), "--epochs", "3", "--batch-size", "8",
@@ -261,14 +271,12 @@ def test_cli_horizon_curriculum_flags(tmp_path):
 # ---------------------------------------------------------------------------
 # A training run killed with SIGKILL
 # ---------------------------------------------------------------------------
-def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(tmp_path):
+def test_sigkilled_training_leaves_a_loadable_model_a_readable_log_and_resumes(tmp_path, tiny_file):
     import os
     import signal
     import subprocess
     import sys
     import time
-
-    from test_train import tiny_file
 
     from mpnode import training as train
     from mpnode.model import Model

@@ -4,60 +4,20 @@ import math
 
 import numpy as np
 import pytest
-import scipy.linalg
 
 from mpnode import training as train
 from mpnode.base.graph import Graph
-from mpnode.data import Trajectories, write_trajectories
+from mpnode.data import Trajectories
 from mpnode.model import Model
 from mpnode.training import batches
 from mpnode.training import log as train_log
 from mpnode.training import loop as train_loop
 from mpnode.training.optim import Adam, array_slices, clip_gradient
 
-
-def tiny_linear(B=24, T=10, dt=0.1, seed=0, offset=0.0):
-    """Two damped oscillators coupled by a spring on their first coordinate (exact solution).
-
-    x (B, T+1, 2, 2): node i has (position, velocity); dx/dt = A x_i + k (x_j - x_i) on the position.
-    """
-    A = np.array([[-0.1, 1.0], [-1.0, -0.1]])
-    k = 0.5
-    M = scipy.linalg.block_diag(A, A)
-    M[0, 0] -= k
-    M[0, 2] += k
-    M[2, 2] -= k
-    M[2, 0] += k
-    E = scipy.linalg.expm(M * dt)
-    rng = np.random.default_rng(seed)
-    x = np.empty((B, T + 1, 4))
-    x[:, 0] = rng.uniform(-1, 1, (B, 4))
-    for t in range(T):
-        x[:, t + 1] = x[:, t] @ E.T
-    return Trajectories(x=x.reshape(B, T + 1, 2, 2) + offset, graphs=[Graph.from_edges(2, [(0, 1)])], dt=dt,
-                        system="tiny_linear")
-
-
-def tiny_file(path, **kw):
-    write_trajectories(path, tiny_linear(**kw))
-    return str(path)
-
-
-def prepared(model, datasets, config):
-    """(train parts, val parts, split) of ``datasets`` under ``config``, ``model``'s normalisation
-    set as training sets it."""
-    data = batches.TrainingData(datasets, config)
-    return (*data.parts(model, config.norm), data.split)
-
-
-def fresh(seed=0, hidden=16):
-    return Model.create(2, 0, message_dim=3, hidden=hidden, dt=0.1, seed=seed)
-
-
 FAST = dict(batch_size=32, lr=1e-2)
 
 
-def test_training_reduces_validation_loss_tenfold():
+def test_training_reduces_validation_loss_tenfold(tiny_linear, fresh):
     traj = tiny_linear()
     r = train.fit(fresh(), [traj], train.TrainConfig(epochs=40, **FAST))
     v0 = r.history[0]["val_loss"]
@@ -67,7 +27,7 @@ def test_training_reduces_validation_loss_tenfold():
     assert min(h["val_loss"] for h in r.history) == r.best_val_loss
 
 
-def test_validation_loss_is_the_training_loss_without_noise():
+def test_validation_loss_is_the_training_loss_without_noise(tiny_linear, fresh, prepared):
     from mpnode import engine
     from mpnode.training import losses
 
@@ -82,7 +42,7 @@ def test_validation_loss_is_the_training_loss_without_noise():
         assert losses.value(pred, x, loss) == pytest.approx(ref, rel=1e-5)
 
 
-def test_normalisation_is_fitted_on_the_training_split_only():
+def test_normalisation_is_fitted_on_the_training_split_only(tiny_linear, fresh, prepared):
     traj = tiny_linear(B=20, offset=0.0)
     traj.x[:, :, :, 0] += np.arange(20)[:, None, None]  # every trajectory has its own level
     m = fresh()
@@ -99,7 +59,7 @@ def test_normalisation_is_fitted_on_the_training_split_only():
     assert not np.array_equal(batches.split_indices(20, 0.3, 4)[1], va)
 
 
-def test_finetune_starts_from_exactly_the_given_weights(tmp_path):
+def test_finetune_starts_from_exactly_the_given_weights(tmp_path, tiny_linear, fresh, prepared):
     src = fresh(seed=5)
     src.x_mean, src.x_std = np.array([0.1, -0.2]), np.array([0.7, 0.9])
     out = tmp_path / "ft.h5"
@@ -116,7 +76,7 @@ def test_finetune_starts_from_exactly_the_given_weights(tmp_path):
     assert r.history[0]["val_loss"] == pytest.approx(train_loop.Validator(va, "huber")(m0.spec, m0.theta)[0], rel=1e-12)
 
 
-def test_refit_finetune_starts_from_the_same_predictions_on_the_new_constants(tmp_path):
+def test_refit_finetune_starts_from_the_same_predictions_on_the_new_constants(tmp_path, tiny_linear, fresh, prepared):
     """norm "refit": the constants become the new training split's, the weights change, and
     the saved model (epochs 0) predicts what the source did (float64)."""
     src = fresh(seed=5).copy(np.float64)
@@ -135,7 +95,7 @@ def test_refit_finetune_starts_from_the_same_predictions_on_the_new_constants(tm
                                rtol=1e-10, atol=1e-10)
 
 
-def test_saved_model_reloads_bit_for_bit_and_rolls_out_identically(tmp_path):
+def test_saved_model_reloads_bit_for_bit_and_rolls_out_identically(tmp_path, tiny_linear, fresh):
     traj = tiny_linear()
     out = tmp_path / "m.h5"
     r = train.fit(fresh(), [traj], train.TrainConfig(epochs=3, **FAST), out)
@@ -153,7 +113,7 @@ def _strip(history):
     return [{k: v for k, v in h.items() if k not in ("seconds", "elapsed")} for h in history]
 
 
-def test_resume_continues_the_same_run(tmp_path):
+def test_resume_continues_the_same_run(tmp_path, tiny_linear, fresh):
     traj = tiny_linear()
     cfg = dict(batch_size=8, lr=1e-2, patience=2)  # several batches per epoch, lr cuts happen
     straight = train.fit(fresh(), [traj], train.TrainConfig(epochs=10, **cfg), tmp_path / "a.h5")
@@ -171,7 +131,7 @@ def test_resume_continues_the_same_run(tmp_path):
     assert [h["epoch"] for h in logs[1]] == list(range(11))
 
 
-def test_the_logged_validation_nmse_is_what_eval_reports_on_the_validation_split(tmp_path):
+def test_the_logged_validation_nmse_is_what_eval_reports_on_the_validation_split(tmp_path, tiny_linear, fresh):
     from mpnode.evaluation.evaluate import evaluate, subset
 
     traj = tiny_linear(B=30)
@@ -181,7 +141,7 @@ def test_the_logged_validation_nmse_is_what_eval_reports_on_the_validation_split
     assert best["val_nmse"] == pytest.approx(got, rel=1e-4)  # float32 rollouts, float64 sums
 
 
-def test_resume_refuses_other_data(tmp_path):
+def test_resume_refuses_other_data(tmp_path, tiny_linear, fresh):
     from mpnode.base.errors import InputError
 
     train.fit(fresh(), [tiny_linear()], train.TrainConfig(epochs=1, **FAST), tmp_path / "m.h5")
@@ -189,7 +149,7 @@ def test_resume_refuses_other_data(tmp_path):
         train.fit(None, [tiny_linear(seed=1)], train.TrainConfig(epochs=2), tmp_path / "m.h5", resume=True)
 
 
-def test_huge_learning_rate_stops_with_a_message_and_a_finite_model(tmp_path):
+def test_huge_learning_rate_stops_with_a_message_and_a_finite_model(tmp_path, tiny_linear, fresh):
     out = tmp_path / "m.h5"
     messages = []
     r = train.fit(fresh(), [tiny_linear()], train.TrainConfig(epochs=50, batch_size=8, lr=1e3), out,
@@ -202,7 +162,7 @@ def test_huge_learning_rate_stops_with_a_message_and_a_finite_model(tmp_path):
     assert np.array_equal(saved.theta, r.model.theta)
 
 
-def test_non_finite_gradient_is_skipped_and_halves_the_learning_rate(monkeypatch):
+def test_non_finite_gradient_is_skipped_and_halves_the_learning_rate(monkeypatch, tiny_linear, fresh):
     from mpnode.training import losses
 
     real = losses.value_and_grad
@@ -245,7 +205,7 @@ def test_clipping_per_array_and_global():
     assert np.array_equal(off, g)
 
 
-def test_clip_mode_changes_training(tmp_path):
+def test_clip_mode_changes_training(tmp_path, tiny_linear, fresh):
     traj = tiny_linear()
     a = train.fit(fresh(), [traj], train.TrainConfig(epochs=2, clip=0.5, clip_mode="per-array", **FAST))
     b = train.fit(fresh(), [traj], train.TrainConfig(epochs=2, clip=0.5, clip_mode="global", **FAST))
@@ -263,7 +223,7 @@ def test_adam_matches_the_textbook_update():
     np.testing.assert_allclose(step2, 0.1 * (m / (1 - 0.81)) / (np.sqrt(v / (1 - 0.999**2)) + 1e-8))
 
 
-def test_training_log_is_valid_json_lines(tmp_path):
+def test_training_log_is_valid_json_lines(tmp_path, tiny_linear, fresh):
     out = tmp_path / "m.h5"
     train.fit(fresh(), [tiny_linear()], train.TrainConfig(epochs=3, **FAST), out)
 
@@ -278,7 +238,7 @@ def test_training_log_is_valid_json_lines(tmp_path):
         assert math.isfinite(r["train_loss"]) and r["grad_norm"] > 0
 
 
-def test_epoch_batches_cover_every_trajectory_once_and_mix_files():
+def test_epoch_batches_cover_every_trajectory_once_and_mix_files(tiny_linear, fresh, prepared):
     m = fresh()
     a, b = tiny_linear(B=30), tiny_linear(B=12, seed=1)
     tr, _, _ = prepared(m, [a, b], train.TrainConfig(val_split=0.25))
@@ -292,7 +252,7 @@ def test_epoch_batches_cover_every_trajectory_once_and_mix_files():
     assert all(p == q and np.array_equal(s, t) for (p, s), (q, t) in zip(epoch, again))
 
 
-def test_files_with_different_graphs_and_node_counts_train_together():
+def test_files_with_different_graphs_and_node_counts_train_together(tiny_linear, fresh):
     a = tiny_linear(B=16)
     # a 3-node chain of the same per-node system (not physical, but the same dx/du/dt)
     x3 = np.concatenate([a.x, a.x[:, :, :1]], axis=2)
@@ -301,7 +261,7 @@ def test_files_with_different_graphs_and_node_counts_train_together():
     assert r.status == "completed" and math.isfinite(r.best_val_loss)
 
 
-def test_incompatible_files_are_refused():
+def test_incompatible_files_are_refused(tiny_linear, fresh):
     from mpnode.base.errors import InputError
 
     a = tiny_linear()
@@ -315,7 +275,7 @@ def test_incompatible_files_are_refused():
 # ---------------------------------------------------------------------------
 # Schedules, held-out graphs, the time budget
 # ---------------------------------------------------------------------------
-def test_cosine_schedule_anneals_from_lr_to_min_lr_over_the_epochs_and_resumes_exactly(tmp_path):
+def test_cosine_schedule_anneals_from_lr_to_min_lr_over_the_epochs_and_resumes_exactly(tmp_path, tiny_linear, fresh):
     traj = tiny_linear()
     cfg = dict(batch_size=8, lr=1e-2, min_lr=1e-4, schedule="cosine")
     r = train.fit(fresh(), [traj], train.TrainConfig(epochs=8, **cfg), tmp_path / "a.h5")
@@ -334,7 +294,7 @@ def test_cosine_schedule_anneals_from_lr_to_min_lr_over_the_epochs_and_resumes_e
     assert np.array_equal(again.model.theta, r.model.theta)  # ... resumes into the same run
 
 
-def test_a_bad_step_scales_the_cosine_schedule_down(tmp_path, monkeypatch):
+def test_a_bad_step_scales_the_cosine_schedule_down(tmp_path, monkeypatch, tiny_linear, fresh):
     from mpnode.training import losses
 
     real = losses.value_and_grad
@@ -352,15 +312,20 @@ def test_a_bad_step_scales_the_cosine_schedule_down(tmp_path, monkeypatch):
     np.testing.assert_allclose([h["lr"] for h in r.history[1:]], want, rtol=1e-12)
 
 
-def multi_graph_file(B=40):
-    """tiny_linear dynamics on 4 distinct 2-node graphs (the same edge in different node orders)."""
-    t = tiny_linear(B=B)
-    graphs = [Graph.from_edges(2, [(0, 1)]), Graph.from_edges(2, [(1, 0)], directed=True),
-              Graph.from_edges(2, [(0, 1)], directed=True), Graph.from_edges(2, [])]
-    return Trajectories(x=t.x, graphs=graphs, dt=t.dt, system=t.system, graph_index=np.arange(B) % 4)
+@pytest.fixture
+def multi_graph_file(tiny_linear):
+    """multi_graph_file(B=40): tiny_linear dynamics on 4 distinct 2-node graphs (the same edge in
+    different node orders)."""
+    def make(B=40):
+        t = tiny_linear(B=B)
+        graphs = [Graph.from_edges(2, [(0, 1)]), Graph.from_edges(2, [(1, 0)], directed=True),
+                  Graph.from_edges(2, [(0, 1)], directed=True), Graph.from_edges(2, [])]
+        return Trajectories(x=t.x, graphs=graphs, dt=t.dt, system=t.system, graph_index=np.arange(B) % 4)
+
+    return make
 
 
-def test_val_graphs_holds_out_whole_graphs():
+def test_val_graphs_holds_out_whole_graphs(tiny_linear, fresh, multi_graph_file, prepared):
     traj = multi_graph_file()
     m = fresh()
     _, _, split = prepared(m, [traj], train.TrainConfig(val_graphs=1, seed=5))
@@ -375,7 +340,7 @@ def test_val_graphs_holds_out_whole_graphs():
     assert len(split[0][1]) == 5
 
 
-def test_the_time_limit_counts_the_whole_run_across_resumes(tmp_path):
+def test_the_time_limit_counts_the_whole_run_across_resumes(tmp_path, tiny_linear, fresh):
     traj = tiny_linear()
     first = train.fit(fresh(), [traj], train.TrainConfig(epochs=3, batch_size=8), tmp_path / "m.h5")
     limit = first.seconds * 0.5  # already spent: a resumed run with this limit stops after one epoch
@@ -383,7 +348,7 @@ def test_the_time_limit_counts_the_whole_run_across_resumes(tmp_path):
     assert again.status == "time_limit" and again.epoch == 4
 
 
-def test_the_scaled_aggregation_divides_by_the_training_graphs_mean_in_degree():
+def test_the_scaled_aggregation_divides_by_the_training_graphs_mean_in_degree(multi_graph_file):
     from mpnode.model.config import ModelConfig
     from mpnode.runs import run as runs
 
