@@ -67,15 +67,15 @@ class _KernelWarmUp:
             if not self.started:
                 self.started = True
                 t0 = time.perf_counter()
-                failed = self.compile_both()
+                done, failed = self.compile_both()
                 took = f"{time.perf_counter() - t0:.0f} s"
-                self.report = (f"numba warm-up: float64 and float32 drivers compiled or loaded in {took}" if not failed
+                self.report = (f"numba warm-up: drivers compiled or loaded in {took} ({', '.join(done)})" if not failed
                                else f"numba warm-up FAILED after {took} ({'; '.join(failed)}): the tests compiled "
                                     "what they needed themselves")
 
     def compile_both(self):
-        """Run tests/warm_kernels.py for each dtype at once; a list of what went wrong."""
-        failed = []
+        """Run tests/warm_kernels.py for each dtype at once: (what each printed last, what went wrong)."""
+        done, failed = [], []
         with tempfile.TemporaryDirectory() as tmp:
             procs = {}
             try:
@@ -90,17 +90,19 @@ class _KernelWarmUp:
                         problem = f"exit status {status}" if status else None
                     except subprocess.TimeoutExpired:
                         problem = f"still running after {WARM_UP_TIMEOUT} s, stopped"
+                    log.seek(0)
+                    last = (log.read().strip().splitlines() or ["no output"])[-1]
                     if problem:
-                        log.seek(0)
-                        last = (log.read().strip().splitlines() or ["no output"])[-1]
                         failed.append(f"{dtype}: {problem}: {last}")
+                    else:
+                        done.append(last)
             finally:
                 for proc, log in procs.values():
                     if proc.poll() is None:
                         proc.kill()
                         proc.wait()
                     log.close()
-        return failed
+        return done, failed
 
 
 _warm_up = _KernelWarmUp()

@@ -7,6 +7,7 @@ runs the same compiled driver for a dtype, so one tiny rollout and VJP per drive
 everything the suite calls.
 """
 import sys
+import time
 
 import numpy as np
 
@@ -58,4 +59,6 @@ if __name__ == "__main__":
     except (ImportError, AttributeError) as e:  # no fcntl (Windows), or a numba whose cache works otherwise
         print(f"cannot serialise numba's cache writes here ({e}): nothing compiled", file=sys.stderr)
         sys.exit(CANNOT_LOCK)
+    start = time.perf_counter()
     warm(np.dtype(sys.argv[1]))
+    print(f"{sys.argv[1]} {time.perf_counter() - start:.0f} s")
