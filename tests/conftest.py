@@ -1,24 +1,25 @@
 """What the tests share: fixtures, and the compiling of the kernels on both cores.
 
 Fixtures (``pytest --fixtures tests`` lists them with their docstrings):
-- ``tiny_linear``, ``tiny_file``, ``fresh``: the tiny test system (two coupled damped
-  oscillators, exact solution), as trajectories, as a trajectory file, and an untrained model for it;
+- ``tiny_linear``, ``tiny_file``, ``fresh``, ``prepared``: the tiny test system (two coupled
+  damped oscillators, exact solution) as trajectories and as a trajectory file, an untrained
+  model for it, and training data prepared from trajectories;
 - ``driver``: run an engine test with each driver (block and stagewise) and check that it ran;
   ``driver_calls``: the drivers a test called.
 Plain helpers for the engine tests (the NumPy reference, test graphs) are in engine_helpers.py.
 
-Compiling the kernels on both cores.  With a cold numba cache, compiling dominates the suite:
-each of the four drivers (mpnode.engine.kernels: rollout and VJP, block and stagewise) is
-compiled for float32 and float64, one function at a time, about a minute and a half per dtype
-on a 2-core machine.  So the first call to a driver in this process (`_KernelWarmUp`) starts
-two processes, tests/warm_kernels.py float64 and float32, which compile the drivers into
-numba's on-disk cache on one core each, waits for them, and goes on: numba then loads each
-driver from the cache, as in any second run, so the tests run the very code they would have
-compiled (same functions, same types, same flags).  With a warm cache the two processes only
-load it (a second or two).  The warm-up cannot stall or change the suite: if a process fails,
-or has not finished after WARM_UP_TIMEOUT, it is stopped and the tests compile what they
-need themselves, as without it; the terminal summary says what happened.  The drivers are
-wrapped here for that only; the wrapper passes every call through unchanged.
+Compiling the kernels on both cores.  With a cold numba cache (a fresh clone, or an edit to
+mpnode/engine/kernels), compiling dominates the suite: each of the four drivers (rollout and
+VJP, block and stagewise) is compiled for float32 and for float64, and numba compiles one
+function at a time.  So the first call to a driver in this process (`_KernelWarmUp`) starts two
+processes, tests/warm_kernels.py float64 and float32, which compile the drivers into numba's
+on-disk cache on one core each, waits for them, and goes on: numba then loads each driver
+from the cache, as in any second run, so the tests run the very code they would have compiled
+(same functions, same types, same flags).  With a warm cache the two processes only load it.
+The warm-up cannot stall or change the suite: if a process fails, or has not finished after
+WARM_UP_TIMEOUT, it is stopped and the tests compile what they need themselves, as without
+it; the terminal summary says what happened.  The drivers are wrapped here for that only;
+the wrapper passes every call through unchanged.  What it saves: docs/evidence/test-suite.md.
 """
 import copy
 import os
@@ -41,7 +42,7 @@ from mpnode.training import batches
 
 DRIVER_ENTRY_POINTS = ("rollout_blocks", "rollout_stagewise", "vjp_blocks", "vjp_stagewise")
 WARM_UP = Path(__file__).with_name("warm_kernels.py")
-#: seconds to wait for the warm-up processes (a safety net: on a loaded 2-core machine they take ~3 minutes)
+#: seconds to wait for the warm-up processes: a safety net, several times what they take on a busy 2-core machine
 WARM_UP_TIMEOUT = 900
 
 
