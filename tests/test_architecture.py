@@ -1,6 +1,6 @@
 """The layers of docs/architecture.md hold: every import inside mpnode/ (at module level or inside
 a function) points down the layers, no two modules import each other even indirectly, and
-`import mpnode` stays light."""
+`import mpnode` stays light.  Test files share conftest fixtures and helper modules, never each other."""
 import ast
 import subprocess
 import sys
@@ -122,3 +122,17 @@ def test_no_function_is_longer_than_80_lines():
                     if node.end_lineno - node.lineno + 1 > 80:
                         long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}")
     assert not long, long
+
+
+def test_no_test_file_imports_another():
+    """What tests share is a fixture of tests/conftest.py or a helper module (engine_helpers.py),
+    never another test file or conftest itself: each test file reads on its own."""
+    tests = ROOT / "tests"
+    test_files = {p.stem for p in tests.glob("test_*.py")} | {"conftest"}
+    found = []
+    for path in sorted(tests.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [node.module] if isinstance(node, ast.ImportFrom) else \
+                [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            found += [f"{path.name}:{node.lineno} imports {n}" for n in names if n in test_files]
+    assert not found, found
