@@ -42,7 +42,7 @@ def convert(file, output, dt, system):
     click.echo(f"wrote {output}: {s['system']}, B={s['B']}, T={s['T']}, N={s['N']}, dx={s['dx']}, du={s['du']}, "
                f"dt={s['dt']:g}, {len(s['graphs'])} graph(s) with "
                + ", ".join(str(g["edges"]) for g in s["graphs"]) + " directed edges")
-    layout = ("state_names", "control_names", "t0")
+    layout = ("state_names", "state_groups", "control_names", "t0")
     for group, keys in (("root attributes", [k for k in traj.attrs if k not in layout]), ("aux/", list(traj.aux))):
         if keys:
             click.echo(f"kept as {group}: {', '.join(keys)}")

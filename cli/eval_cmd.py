@@ -1,5 +1,6 @@
 """`mpnode eval MODEL DATA` and `mpnode simulate MODEL SCENE`: use a trained model."""
 import json
+import math
 import os
 
 import click
@@ -105,15 +106,42 @@ def _g(v):
     return str(v) if isinstance(v, str) else f"{v:.3g}"
 
 
+def report_steps(horizon):
+    """The steps the report shows: 1, T/10, T/5, 2T/5 and T (1, 5, 10, 20, 50 for T = 50)."""
+    return sorted({1, *(max(1, horizon * k // 10) for k in (1, 2, 4)), horizon})
+
+
+def _at(per_step, steps):
+    return ", ".join(f"{s}: {_g(per_step[s])}" for s in steps)
+
+
+def _against_hold(r, steps):
+    """The lines comparing the model with holding the initial state, overall and per state group."""
+    hold, first = r["hold"], r["hold"]["first_step_not_below"]
+    verdict = "below it at every step" if first is None else f"at or above it first at step {first}"
+    lines = [f"  holding the initial state: mean {_g(hold['nmse'])}; per step: {_at(hold['nmse_per_step'], steps)} "
+             f"(the model is {verdict})"]
+    if r["groups"]:
+        lines.append(f"  by state group (file attribute state_groups): mean over steps 1..{r['horizon']} "
+                     "[holding the initial state]; per step")
+        width = max(map(len, r["groups"]))
+        for name, g in r["groups"].items():
+            above = g["first_step_not_below_hold"]
+            flag = "" if above is None else f"  (at or above holding first at step {above})"
+            lines.append(f"    {name:<{width}} {_g(g['nmse'])} [{_g(g['hold_nmse'])}]; "
+                         f"{_at(g['nmse_per_step'], steps)}{flag}")
+    return lines
+
+
 def format_report(report, model_name):
     """The human-readable evaluation report (several lines)."""
     r = report
     lines = [f"{model_name} on {r['data']}: B={r['trajectories']}, T={r['horizon']}, N={r['nodes']}"]
-    per = r["nmse_per_step"]
     t = r["horizon"]
-    steps = sorted({1, max(1, t // 4), max(1, t // 2), max(1, 3 * t // 4), t})
+    steps = report_steps(t)
     lines.append(f"  normalised MSE, mean over steps 1..{t}: {_g(r['nmse'])}   last step: {_g(r['nmse_last'])}")
-    lines.append("  per step: " + ", ".join(f"{s}: {_g(per[s])}" for s in steps))
+    lines.append("  per step: " + _at(r["nmse_per_step"], steps))
+    lines += _against_hold(r, steps)
     if r["first_bad_step"] is None:
         lines.append("  blow-ups: none (every prediction finite and inside 10x the data's range)")
     else:
@@ -168,6 +196,10 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     Error: normalised MSE (squared error / per-dimension variance of DATA's true
     states) per step and averaged over steps 1..T, the last step's, and the first
     step where a prediction became non-finite or left ten times the data's range.
+    Beside it, the error of holding every state at its initial value (the simplest
+    forecast) and the first step where the model is not below it; when DATA names a
+    group for each state dimension (attribute state_groups, e.g. position, attitude,
+    velocity and body rates of the quadrotors), the error of each group too.
     Predictable horizon: per trajectory the first step whose normalised MSE exceeds
     0.1 and 1.0, reported as the median over trajectories (in steps and time).
     Speed: rollout wall time and node-steps per second; when DATA names a reference
@@ -214,6 +246,26 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
             click.echo(f"wrote {predictions}")
 
 
+def _scene_start(model, model_file, scene, s, system):
+    """(x0, graphs, graph_index, controls or None) to simulate ``model`` on the scene ``s`` of
+    ``system``: InputError unless the model fits (dx, du, N; a closed loop: dt)."""
+    from data_gen import closed_loop_start, initial_states
+
+    if system.state_dim != model.spec.state_dim:
+        raise InputError(scene, "system", f"{s.system} has {system.state_dim} state dimensions per node but the "
+                         f"model has {model.spec.state_dim}", "a scene of the system the model learned")
+    if model.spec.control_dim != system.control_dim:
+        raise InputError(model_file, "control_dim", f"the model takes {model.spec.control_dim} controls per node "
+                         f"but {s.system} has {system.control_dim}", "a model of the scene's system")
+    model.check_nodes(s.graph.n_nodes, scene, "graph.nodes")
+    if system.controllers is None:
+        return (*initial_states(s), None)
+    if not math.isclose(model.spec.dt, s.dt, rel_tol=1e-9):
+        raise InputError(scene, "dt", f"the scene's controllers run every {s.dt:g} but the model steps {model.spec.dt:g}",
+                         "a model trained at the scene's dt")
+    return closed_loop_start(s)
+
+
 def _or_why(make, stability):
     """make(); a NumericalError (non-finite predictions) carries the stability check's diagnosis."""
     try:
@@ -243,6 +295,11 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     initial states.  The output uses the model's dt; its attributes name the model
     and the substeps used.
 
+    A closed-loop scene (the quadrotor swarms, quad3 ... quad12) runs the model in the
+    scene's loop: every step the scene's controllers choose the thrusts from the
+    model's own state (scenario and thrust noise drawn as `mpnode generate` draws them),
+    and the output holds them as u.
+
     --substeps auto chooses the RK4 substeps by step doubling (see `mpnode eval
     --help`).  Without true states, a prediction counts as blown up when it is
     non-finite or leaves [mean - 20 std, mean + 20 std] of the training data (the
@@ -251,7 +308,7 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     """
     from dataclasses import replace
 
-    from data_gen import initial_states, load_scene
+    from data_gen import load_scene
     from data_gen.systems import get_system
     from mpnode.base.atomic import check_outputs
     from mpnode.data import write_trajectories
@@ -265,16 +322,9 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     s = replace(s, **{k: v for k, v in dict(trajectories=trajectories, horizon=horizon, seed=seed).items()
                       if v is not None})
     system = get_system(s.system)
-    if system.state_dim != model.spec.state_dim:
-        raise InputError(scene, "system", f"{s.system} has {system.state_dim} state dimensions per node but the "
-                         f"model has {model.spec.state_dim}", "a scene of the system the model learned")
-    if model.spec.control_dim:
-        raise InputError(model_file, "control_dim", f"the model takes controls (du = {model.spec.control_dim}) "
-                         "but scenes have none", "a model without controls")
-    x0, graphs, gi = initial_states(s)
-    model.check_nodes(s.graph.n_nodes, scene, "graph.nodes")
+    x0, graphs, gi, controls = _scene_start(model, model_file, scene, s, system)
     sim = simulate(model, x0, graphs, gi, s.horizon, substeps=substeps, substeps_tol=substeps_tol,
-                   max_substeps=max_substeps)
+                   max_substeps=max_substeps, controls=controls)
     for line in format_substeps(sim.substeps, sim.substeps_report, sim.stability):
         click.echo(line.strip(), err=bool(sim.stability.get("message")) and "WARNING" in line)
     if plot:  # before the trajectory file, which refuses non-finite predictions: a blow-up gets its figure
@@ -285,9 +335,10 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
         click.echo(f"wrote {plot}")
     attrs = {"scene": s.name, "seed": s.seed, "description": f"{model.kind} rollout of {s.description}",
              **s.graph.describe(), **substeps_attrs(sim.substeps, sim.substeps_report),
-             **({"state_names": list(system.state_names)} if system.state_names else {})}
+             **({"state_names": list(system.state_names)} if system.state_names else {}),
+             **({"state_groups": list(system.state_groups)} if system.state_groups else {})}
     pf = _or_why(lambda: predictions_file(sim.predictions, graphs, gi, model.spec.dt, s.system,
-                                          os.path.abspath(model_file), attrs=attrs), sim.stability)
+                                          os.path.abspath(model_file), sim.u, attrs), sim.stability)
     write_trajectories(output, pf)
     node_steps = s.trajectories * s.graph.n_nodes * s.horizon
     click.echo(f"wrote {output}: {s.name}, B={s.trajectories}, T={s.horizon}, N={s.graph.n_nodes}, "

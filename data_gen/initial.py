@@ -64,3 +64,17 @@ def initial_states(scene):
     x0 = np.stack([sampler(trajectory_rng(scene.seed, b), system, graphs[gi[b]].n_nodes)
                    for b in range(scene.trajectories)])
     return x0, graphs, gi
+
+
+def closed_loop_start(scene):
+    """(x0 (B, N, dx), graphs, graph_index (B,), controls) of a closed-loop scene: its initial states
+    and its controller, controls(k, x (B, N, dx)) -> u (B, N, du), drawn as `generate` draws them,
+    to run a learned model in the scene's loop."""
+    from .systems import get_system
+
+    system = get_system(scene.system)
+    if system.controllers is None:
+        raise InputError(scene.name, "system", f"{system.name} has no controller", "a closed-loop scene")
+    graphs = scene.graph.build()
+    x0, controls = system.controllers(scene)
+    return x0, graphs, np.arange(scene.trajectories) % len(graphs), controls

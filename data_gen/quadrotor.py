@@ -39,6 +39,8 @@ STATE_DIM = 13
 #: the node state's dimensions: position, attitude quaternion (body to world), velocity, body rates
 STATE_NAMES = ("r_x (m)", "r_y (m)", "r_z (m)", "q_w", "q_x", "q_y", "q_z", "v_x (m/s)", "v_y (m/s)", "v_z (m/s)",
                "omega_x (rad/s)", "omega_y (rad/s)", "omega_z (rad/s)")
+#: the group of each dimension (file attribute ``state_groups``): `mpnode eval` reports each group's error
+STATE_GROUPS = ("position",) * 3 + ("attitude",) * 4 + ("velocity",) * 3 + ("body rates",) * 3
 CONTROL_DIM = 4
 LOAD_DIM = 6
 
@@ -528,6 +530,48 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
                 gains=control.gains())
 
 
+# ---- a learned model in the loop ----------------------------------------------------
+class SceneControllers:
+    """The controllers of a scene's B trajectories, to drive a learned model (`mpnode simulate`) as
+    `generate` drives the physics: trajectory b draws its scenario (start, goal, gain factors) and
+    then its thrust noise step after step from ``SeedSequence(scene.seed, spawn_key=(b,))``, as
+    `closed_loop` does, and starts in the same equilibrium; so where the physics needed no
+    re-draw, trajectory b of a file generated with the same scene and seed is the reference of
+    the learned trajectory b.  Nothing stops a learned swarm that loses a quadrotor.
+
+    x0 : (B, n, 13) initial states;  calling it with (k, x (B, n, 13)) gives the thrusts (B, n, 4)
+    held over step k.
+    """
+
+    def __init__(self, scene):
+        n, c = scene.graph.n_nodes, CONTROL
+        physics = Physics({**PARAMS, **scene.params})
+        self.dt, self.noise, self.f_max = scene.dt, c["thrust_noise"], physics.F_max
+        self.rngs = [np.random.default_rng(np.random.SeedSequence(scene.seed, spawn_key=(b,)))
+                     for b in range(scene.trajectories)]
+        self.controllers, x0 = [], []
+        for rng in self.rngs:
+            start, goal, gain_scale = draw_scenario(rng, c)
+            self.controllers.append(Controller(n, Reference(n, start, goal, physics, c), physics, c, scene.dt,
+                                               gain_scale))
+            x0.append(static_equilibrium(n, start, physics)[0])
+        self.x0 = np.stack(x0)
+
+    def __call__(self, k, x):
+        F = np.empty(np.shape(x)[:2] + (CONTROL_DIM,))
+        with np.errstate(all="ignore"):  # a lost (non-finite) swarm gets non-finite thrusts, not an error
+            for b, (control, rng) in enumerate(zip(self.controllers, self.rngs)):
+                f, _ = control(k * self.dt, np.asarray(x[b], dtype=np.float64))
+                F[b] = np.clip(f + self.noise * rng.standard_normal(f.shape), 0.0, self.f_max)
+        return F
+
+
+def controllers(scene):
+    """(x0 (B, n, 13), controls(k, x) -> (B, n, 4)): the scene's closed loop around a learned model."""
+    loop = SceneControllers(scene)
+    return loop.x0, loop
+
+
 # ---- the data set -------------------------------------------------------------------
 def draw_params(p, n_nodes, rng):
     """The array parameters of the spec (nothing is random): J (3, 3) and g (3,)."""
@@ -582,6 +626,7 @@ def generate(scene, *, workers=2, max_tries=10, progress=None, scheduler=None):
                  integration="solve_ivp one saved step at a time, quaternions renormalised at every step",
                  evaluations_mean=float(out["evaluations"].mean()),
                  min_tension=float(out["min_tension"].min()), state_names=list(STATE_NAMES),
+                 state_groups=list(STATE_GROUPS),
                  **{f"ctrl_{k}": (np.asarray(v, float) if isinstance(v, tuple) else v) for k, v in CONTROL.items()},
                  **{f"ctrl_{k}_nominal": v for k, v in probe.gains().items()},
                  **scene.graph.describe())

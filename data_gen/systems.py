@@ -113,8 +113,14 @@ class System:
     samplers : initial-state samplers that make sense for it (see initial.py)
     generator : closed-loop systems only (quadrotor_load): generator(scene, workers=, max_tries=,
         progress=) -> Trajectories, which then owns initial states, controls and aux data
+    controllers : closed-loop systems: controllers(scene) -> (x0 (B, N, dx), controls), where
+        controls(k, x (B, N, dx)) -> u (B, N, du) closes the scene's loop around a learned model
+    control_dim : du, the controls per node (0: none)
     state_names : one name (with its unit where there is one) per state dimension; files
         carry them as the attribute ``state_names`` and the figures label their axes with them
+    state_groups : the group each state dimension belongs to (e.g. position, attitude), or () when
+        the state is one group; files carry them as ``state_groups`` and `mpnode eval` reports each
+        group's error
     """
 
     name: str
@@ -129,7 +135,10 @@ class System:
     complete: bool = False
     samplers: tuple = ("uniform",)
     generator: Callable = None
+    controllers: Callable = None
+    control_dim: int = 0
     state_names: tuple = ()
+    state_groups: tuple = ()
 
     def check_graph(self, graph, source, field):
         """Raise InputError unless ``graph`` is one this system's physics is defined on."""
@@ -183,7 +192,9 @@ SYSTEMS = {
         # rhs: f(t, y, F) on the state INCLUDING the load, thrusts F held (see quadrotor.py)
         System(quadrotor.SYSTEM, quadrotor.STATE_DIM, dict(quadrotor.PARAMS), low=(), high=(),
                draw=quadrotor.draw_params, rhs=quadrotor.make_rhs, complete=True,
-               samplers=("equilibrium",), generator=quadrotor.generate, state_names=quadrotor.STATE_NAMES),
+               samplers=("equilibrium",), generator=quadrotor.generate, controllers=quadrotor.controllers,
+               control_dim=quadrotor.CONTROL_DIM, state_names=quadrotor.STATE_NAMES,
+               state_groups=quadrotor.STATE_GROUPS),
     ]
 }
 

@@ -149,3 +149,47 @@ def test_cli_eval_times_the_reference_simulator(tmp_path):
     assert ref["reference_nmse_vs_file"] < 1e-12  # the same integrator rebuilds the file
     res = CliRunner().invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "p.h5"), "--reference-sample", "2"])
     assert "speed against error" in res.output
+
+
+def test_eval_holds_the_model_against_holding_the_initial_state_per_state_group(tmp_path, tiny_linear, fresh):
+    m = fresh()
+    traj = tiny_linear(B=5)
+    traj.attrs["state_groups"] = ["position", "velocity"]
+    r = evaluate(m, traj)
+    x = np.asarray(traj.x, dtype=np.float64)
+    var = x.reshape(-1, 2).var(axis=0)
+    hold = ((x - x[:, :1]) ** 2 / var).mean(axis=(0, 2))  # (T+1, dx)
+    np.testing.assert_allclose(r.hold_per_dim, hold)
+    np.testing.assert_allclose(r.per_dim.mean(axis=1), r.nmse_per_step)
+    assert r.groups == {"position": [0], "velocity": [1]}
+    summary = r.summary()
+    np.testing.assert_allclose(summary["hold"]["nmse"], hold[1:].mean())
+    assert summary["groups"]["velocity"]["nmse"] == pytest.approx(r.per_dim[1:, 1].mean())
+    assert summary["groups"]["position"]["hold_nmse"] == pytest.approx(hold[1:, 0].mean())
+    # the first step where the model is not below holding, overall and per group
+    worse = np.flatnonzero(r.per_dim[1:, 1] >= hold[1:, 1])
+    assert summary["groups"]["velocity"]["first_step_not_below_hold"] == (worse[0] + 1 if len(worse) else None)
+    # a model that reproduces the data is below holding at every step
+    exact = evaluate(m, Trajectories(x=r.predictions.astype(np.float64), graphs=traj.graphs, dt=traj.dt, system="x",
+                                     attrs={"state_groups": ["a", "b"]}))
+    assert exact.summary()["hold"]["first_step_not_below"] is None
+    assert all(g["first_step_not_below_hold"] is None for g in exact.summary()["groups"].values())
+    # the command line shows both, in text and in JSON; a file without groups shows none
+    m.save(tmp_path / "m.h5")
+    write_trajectories(tmp_path / "d.h5", traj)
+    res = CliRunner().invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d.h5")])
+    assert res.exit_code == 0, res.output
+    assert "holding the initial state: mean" in res.output and "by state group" in res.output
+    assert "    velocity " in res.output and "per step: 1: " in res.output
+    res = CliRunner().invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d.h5"), "--json"])
+    report = json.loads(res.output)
+    assert report["groups"]["position"]["dims"] == [0] and len(report["hold"]["nmse_per_step"]) == 11
+    del traj.attrs["state_groups"]
+    assert evaluate(m, traj).summary()["groups"] == {}
+
+
+def test_state_groups_must_name_every_dimension(tmp_path, tiny_linear):
+    traj = tiny_linear(B=2)
+    traj.attrs["state_groups"] = ["position"]
+    with pytest.raises(InputError, match="state_groups"):
+        write_trajectories(tmp_path / "d.h5", traj)

@@ -203,3 +203,35 @@ def test_full_horizon_transport_reaches_the_goal(name, B):
     # it went through the doorway: at t = 5 s the load is at [3, 0, 0.25] within 0.3 m
     assert np.all(np.linalg.norm(load[:, 50, :3] - [3.0, 0.0, 0.25], axis=1) < 0.3)
     assert t.attrs["min_tension"] >= 0 and t.attrs["redrawn"] == 0
+
+
+def test_a_learned_model_runs_in_the_scenes_closed_loop(tmp_path):
+    """`mpnode simulate MODEL quadN`: the scene's controllers choose the thrusts from the model's state,
+    drawing as generate draws: the same start, and at step 0 (same state) the same thrusts."""
+    from click.testing import CliRunner
+
+    from cli.main import main
+    from mpnode.model import Model
+
+    model = Model.create(13, 4, dt=0.1, message_dim=2, hidden=4, seed=3)
+    model.x_mean, model.x_std = np.r_[0, 0, 1, 1, np.zeros(9)], np.full(13, 0.5)
+    model.save(tmp_path / "m.h5")
+    res = CliRunner().invoke(main, ["simulate", str(tmp_path / "m.h5"), "quad4", "-o", str(tmp_path / "s.h5"),
+                                    "-B", "2", "-T", "3", "--seed", "11"])
+    assert res.exit_code == 0, res.output
+    sim = read_trajectories(tmp_path / "s.h5")
+    ref = generate(replace(BUILTIN["quad4"], trajectories=2, horizon=1, seed=11), workers=1)
+    np.testing.assert_allclose(sim.x[:, 0], ref.x[:, 0], atol=1e-6)  # float32 model states
+    np.testing.assert_allclose(sim.u[:, 0], ref.u[:, 0], atol=1e-4)
+    # given the thrusts the loop chose, the open-loop rollout is the closed loop, bit for bit
+    from data_gen import closed_loop_start
+    from mpnode.evaluation.evaluate import closed_loop_rollout
+
+    x0, graphs, gi, controls = closed_loop_start(replace(BUILTIN["quad4"], trajectories=2, seed=11))
+    x, u = closed_loop_rollout(model, x0, graphs, gi, 3, controls)
+    np.testing.assert_array_equal(model.rollout(x0, graphs[0], u), x)
+    np.testing.assert_array_equal(x, sim.x)
+    other = Model.create(13, 0, dt=0.1, hidden=4)
+    other.save(tmp_path / "n.h5")
+    res = CliRunner().invoke(main, ["simulate", str(tmp_path / "n.h5"), "quad4", "-o", str(tmp_path / "t.h5"), "-B", "1"])
+    assert res.exit_code == 2 and "controls" in res.output

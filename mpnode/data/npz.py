@@ -34,6 +34,8 @@ KEYS = {
     "edges_0, edges_1, ... (or indptr_0 + indices_0, ...)": "several graphs, with graph_index",
     "graph_index": "(B,) int: the graph of each trajectory (required with several graphs)",
     "state_names, control_names": "(dx,), (du,) strings: names of the dimensions, used by the figures (optional)",
+    "state_groups": "(dx,) strings: the group of each state dimension; mpnode eval reports each group's error "
+                    "(optional)",
     "anything else": "kept: a scalar as a root attribute, an array under aux/",
 }
 _NUMBERED = re.compile(r"^(edges|indptr|indices)_(\d+)$")
@@ -59,7 +61,7 @@ def read_npz(path, dt=None, system=None):
     step = _dt(arrays, dt, x.shape[1] - 1, attrs, source)
     name = _system(arrays, system, source)
     graphs = _graphs(arrays, x.shape[2], source)
-    for key in ("state_names", "control_names"):
+    for key in ("state_names", "state_groups", "control_names"):
         if key in arrays:
             names = arrays.pop(key)
             attrs[key] = names.tolist() if names.dtype.kind in "US" and names.ndim == 1 else names

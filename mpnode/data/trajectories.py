@@ -82,7 +82,8 @@ class Trajectories:
         edge list of (sender, receiver) pairs (E, 2), undirected unless ``directed`` -- or a
         list of them with ``graph_index`` (B,) naming each trajectory's;  dt : time between
         saved states;  system : a name for the system;  attrs : further root attributes
-        (``state_names``: one name per state dimension, used by the figures).
+        (``state_names``: one name per state dimension, used by the figures; ``state_groups``: the
+        group of each, whose errors `mpnode eval` reports).
         Integer arrays become float64.  Raises InputError naming ``source`` and the field.
         """
         x, u = _float_array(x, "x", source), None if u is None else _float_array(u, "u", source)
@@ -213,6 +214,7 @@ def validate_trajectories(traj, source):
             raise InputError(source, key, "is set in attrs, but it is a format attribute",
                              "dt and system as Trajectories fields; format and format_version are written by mpnode")
     _check_names(traj.attrs.get("state_names"), "state_names", x.shape[3], source)
+    _check_names(traj.attrs.get("state_groups"), "state_groups", x.shape[3], source)
     if traj.u is not None:
         _check_names(traj.attrs.get("control_names"), "control_names", np.shape(traj.u)[3], source)
     return traj

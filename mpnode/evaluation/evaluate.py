@@ -14,17 +14,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mpnode.base.errors import NumericalError
+from mpnode.base.errors import InputError, NumericalError
+from mpnode import engine
 from mpnode.data import Trajectories
-from mpnode.model import check_data
+from mpnode.model import batch_graph, check_data
 
 from . import stepsize
 from .metrics import (
     HORIZON_THRESHOLDS,
     blow_up_mask,
     data_box,
-    nmse_per_step,
+    hold_nmse_per_step_and_dim,
+    nmse_per_step_and_dim,
     predictable_horizon,
+    state_groups,
 )
 
 
@@ -40,6 +43,8 @@ class EvalResult:
     substeps : RK4 substeps per dt used;  substeps_report : `choose_substeps` report (auto) or None
     stability : `stepsize.stability_check` dict (step_too_large, suggested_substeps, ...) or None
     horizons : `predictable_horizon` dict (threshold -> median step/time, per trajectory)
+    per_dim, hold_per_dim : (T+1, dx) normalised MSE per step and state dimension, of the model and
+        of holding the initial state;  groups : {group: [dimensions]} of the file's state_groups
     """
 
     nmse_per_step: np.ndarray
@@ -57,15 +62,30 @@ class EvalResult:
     substeps_report: dict = None
     stability: dict = None
     horizons: dict = None
+    per_dim: np.ndarray = None
+    hold_per_dim: np.ndarray = None
+    groups: dict = None
+
+    @property
+    def hold_per_step(self):
+        """(T+1,) normalised MSE of holding the initial state."""
+        return self.hold_per_dim.mean(axis=1)
+
+    def first_step_not_below_hold(self, dims=slice(None)):
+        """The first step >= 1 at which the model's error (over ``dims``) is not below holding the
+        initial state's, or None when it is below at every step."""
+        worse = self.per_dim[1:, dims].mean(axis=1) >= self.hold_per_dim[1:, dims].mean(axis=1)
+        return int(np.argmax(worse)) + 1 if worse.any() else None
 
     def summary(self):
         """A JSON-ready dict (no predictions; inf/NaN as strings)."""
-        def num(v):
-            return v if v is None or math.isfinite(v) else str(v)
-
+        hold = {**_errors(self.hold_per_step), "first_step_not_below": self.first_step_not_below_hold()}
+        groups = {name: {"dims": dims, **_errors(self.per_dim[:, dims].mean(axis=1)),
+                         "hold_nmse": _num(float(self.hold_per_dim[1:, dims].mean())),
+                         "first_step_not_below_hold": self.first_step_not_below_hold(dims)}
+                  for name, dims in (self.groups or {}).items()}
         return {"trajectories": self.n_trajectories, "horizon": self.horizon, "nodes": self.n_nodes,
-                "nmse": num(self.nmse), "nmse_last": num(self.nmse_last),
-                "nmse_per_step": [num(float(v)) for v in self.nmse_per_step],
+                **_errors(self.nmse_per_step), "hold": hold, "groups": groups,
                 "first_bad_step": self.first_bad_step, "blown_up_trajectories": self.n_bad,
                 "rollout_seconds": self.rollout_seconds, "node_steps_per_second": self.node_steps_per_second,
                 "substeps": self.substeps, "substeps_auto": self.substeps_report,
@@ -74,16 +94,29 @@ class EvalResult:
                 "stability": self.stability, "predictable_horizon": self.horizons}
 
 
+def _num(v):
+    """A JSON number, or inf/NaN as a string."""
+    return v if v is None or math.isfinite(v) else str(v)
+
+
+def _errors(per_step):
+    """The summary's error entries of a (T+1,) normalised MSE per step."""
+    return {"nmse": _num(float(per_step[1:].mean())), "nmse_last": _num(float(per_step[-1])),
+            "nmse_per_step": [_num(float(v)) for v in per_step]}
+
+
 @dataclass
 class SimulationResult:
     """predictions : ndarray, shape (B, T+1, N, dx), data units;  seconds : rollout wall time;
-    substeps, substeps_report, stability : as in EvalResult."""
+    substeps, substeps_report, stability : as in EvalResult;  u : (B, T, N, du) the controls
+    (given, or chosen by a closed loop), or None."""
 
     predictions: np.ndarray
     seconds: float
     substeps: int
     substeps_report: dict
     stability: dict
+    u: np.ndarray = None
 
 
 def rollout_all(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384):
@@ -148,7 +181,8 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     seconds = time.perf_counter() - start
     box = data_box(x)
     bad = blow_up_mask(pred, box=box)
-    err = nmse_per_step(pred, x, bad)
+    per_dim = nmse_per_step_and_dim(pred, x, bad)
+    err = per_dim.mean(axis=1)
     blown = bad.any(axis=0)
     stability = None
     if check_stability:
@@ -157,7 +191,16 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     return EvalResult(err, float(err[1:].mean()), float(err[-1]), int(np.argmax(blown)) if blown.any() else None,
                       int(bad[:, -1].sum()), seconds, b * n * (t1 - 1) / max(seconds, 1e-12), pred, b, t1 - 1, n,
                       model.spec.substeps, auto_report, stability,
-                      predictable_horizon(pred, x, traj.dt, horizon_thresholds, bad))
+                      predictable_horizon(pred, x, traj.dt, horizon_thresholds, bad), per_dim,
+                      hold_nmse_per_step_and_dim(x), file_groups(traj, source))
+
+
+def file_groups(traj, source="data"):
+    """{group: [dimensions]} of the file's ``state_groups`` attribute ({} without one)."""
+    try:
+        return state_groups(traj.attrs.get("state_groups"), traj.state_dim)
+    except ValueError as e:
+        raise InputError(source, "state_groups", str(e), "one group name per state dimension") from None
 
 
 def simulation_box(model, x0):
@@ -170,23 +213,53 @@ def simulation_box(model, x0):
 
 
 def simulate(model, x0, graphs, graph_index, horizon, u=None, substeps=None, substeps_tol=stepsize.DEFAULT_TOL,
-             max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS):
+             max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS, controls=None):
     """Roll ``model`` out from x0 (B, N, dx) on ``graphs[graph_index[b]]`` for ``horizon`` steps.
 
+    controls : a closed loop instead of given controls ``u``: controls(k, x (B, N, dx)) -> the
+    controls (B, N, du) held over step k, chosen from the model's own state (`closed_loop_rollout`);
+    the result's ``u`` holds what they chose, which "auto" substeps and the stability check
+    replay (auto chooses on the controls of a first pass at the model's own substeps).
     A prediction blows up when it is non-finite or leaves ten times `simulation_box`; the
     stability check says whether more substeps avoid that.  Returns a SimulationResult.
     """
     model.check_finite()
+    if controls is not None and substeps == "auto":
+        u = closed_loop_rollout(model, x0, graphs, graph_index, horizon, controls)[1]
     model, auto_report = with_substeps(model, substeps, x0, graphs, graph_index, u, horizon, substeps_tol,
                                        max_substeps)
     start = time.perf_counter()
-    pred = rollout_all(model, x0, graphs, graph_index, horizon, u)
+    if controls is None:
+        pred = rollout_all(model, x0, graphs, graph_index, horizon, u)
+    else:
+        pred, u = closed_loop_rollout(model, x0, graphs, graph_index, horizon, controls)
     seconds = time.perf_counter() - start
     box = simulation_box(model, x0)
     stability = stepsize.stability_check(model, x0, _per_trajectory(graphs, graph_index), u, pred,
                                          blow_up_mask(pred, box=box), substeps_tol, max_substeps=max_substeps,
                                          box=box)
-    return SimulationResult(pred, seconds, model.spec.substeps, auto_report, stability)
+    return SimulationResult(pred, seconds, model.spec.substeps, auto_report, stability, u)
+
+
+def closed_loop_rollout(model, x0, graphs, graph_index, horizon, controls):
+    """Roll out one step at a time, each step's controls chosen from the model's state by
+    ``controls(k, x (B, N, dx)) -> u (B, N, du)`` (a controller closing the loop around the
+    model).  Messages carry over between steps, so given the same controls this is bit for bit
+    `Model.rollout`.  Returns (x (B, horizon+1, N, dx) in the model's dtype, u (B, horizon, N, du))."""
+    b, n, dx = x0.shape
+    spec = model.spec
+    flat = batch_graph(_per_trajectory(graphs, graph_index), b)
+    z = engine.initial_state(spec, model.normalize_x(x0).reshape(b * n, dx), model.dtype)
+    xs, us = [model.denormalize_x(z[:, :dx].reshape(b, n, dx)).astype(model.dtype)], []
+    for k in range(horizon):
+        u = np.asarray(controls(k, xs[-1]), dtype=np.float64)
+        if u.shape != (b, n, spec.control_dim):
+            raise ValueError(f"the controls of step {k} have shape {u.shape}, the model needs {(b, n, spec.control_dim)}")
+        with np.errstate(all="ignore"):
+            _, z = engine.integrate(spec, model.theta, z, flat, model.normalize_u(u).reshape(1, b * n, -1), 1)
+        xs.append(model.denormalize_x(z[:, :dx].reshape(b, n, dx)).astype(model.dtype))
+        us.append(u)
+    return np.stack(xs, axis=1), np.stack(us, axis=1)
 
 
 def learned_seconds_per_trajectory(model, traj, k, repeats=3):

@@ -9,6 +9,11 @@ A prediction that becomes non-finite, or leaves a box ten times as wide as the d
 dimension: [mid - 5 r, mid + 5 r] with mid and r the midpoint and range of the true
 states), counts as blown up; its error from that step on is infinite.
 
+Beside a model's error stands the error of holding every state at its initial value (the
+simplest forecast), per step; files whose state dimensions fall into named groups (the
+``state_groups`` attribute, e.g. position, attitude, velocity and body rates of a quadrotor)
+get each group's error too, so a user sees which part of the state carries the error.
+
 Averages hide where a chaotic prediction parts from the truth, so the *predictable
 horizon* is reported too: per trajectory, the first step t >= 1 at which its own
 normalised MSE exceeds a threshold (0.1 and 1.0 by default; a blown-up step exceeds
@@ -64,10 +69,38 @@ def blow_up_mask(pred, truth=None, box=None):
 
 def nmse_per_step(pred, truth, bad=None):
     """Normalised MSE per step, shape (T+1,); steps where some trajectory blew up (``bad``) are inf."""
-    err = normalised_sq_error(pred, truth).mean(axis=(0, 2, 3))
+    return nmse_per_step_and_dim(pred, truth, bad).mean(axis=1)
+
+
+def nmse_per_step_and_dim(pred, truth, bad=None):
+    """Normalised MSE per step and state dimension, shape (T+1, dx) (averaged over trajectories
+    and nodes); steps where some trajectory blew up (``bad``) are inf."""
+    err = normalised_sq_error(pred, truth).mean(axis=(0, 2))
     if bad is not None:
         err[bad.any(axis=0)] = np.inf
     return err
+
+
+def hold_nmse_per_step_and_dim(truth):
+    """The error of the simplest forecast, holding every state at its initial value: `nmse_per_step_and_dim`
+    of x[:, 0] repeated (T+1, dx).  A model that is not below it has learned nothing usable."""
+    truth = np.asarray(truth)
+    return nmse_per_step_and_dim(np.broadcast_to(truth[:, :1], truth.shape), truth)
+
+
+def state_groups(names, dx):
+    """{group: [dimension indices]} in the order groups first appear, from ``names`` (one group name
+    per state dimension: a file's ``state_groups`` attribute); {} when the file names none, or only
+    one group (then the group is the whole state)."""
+    if names is None:
+        return {}
+    names = [names] if isinstance(names, str) else list(names)
+    if len(names) != dx:
+        raise ValueError(f"{len(names)} group names for {dx} state dimensions")
+    groups = {}
+    for i, name in enumerate(names):
+        groups.setdefault(str(name), []).append(i)
+    return groups if len(groups) > 1 else {}
 
 
 def predictable_horizon(pred, truth, dt, thresholds=HORIZON_THRESHOLDS, bad=None):
