@@ -1,17 +1,21 @@
 """`mpnode generate SCENE -o FILE` and `mpnode scenes`: make trajectory files from the reference systems."""
+import os
 import sys
 import time
 from dataclasses import replace
 
 import click
 
+from mpnode.base.errors import InputError
+
 from .main import main, scheduler_option
 
 
 @main.command("generate")
 @click.argument("scene")
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
-              help="Trajectory file (HDF5) to write; written atomically, absent if generation fails.")
+@click.option("-o", "--output", required=True, type=click.Path(),
+              help="Trajectory file (HDF5) to write; written atomically, absent if generation fails.  A scene set: "
+                   "a folder or a file-name prefix (below).")
 @click.option("--trajectories", "-B", type=click.IntRange(min=1),
               help="Number of trajectories B (scene default otherwise).")
 @click.option("--horizon", "-T", type=click.IntRange(min=1), help="Saved steps per trajectory T (x has T+1 states).")
@@ -27,7 +31,11 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler)
     """Integrate the reference system of SCENE and write the trajectories to FILE.
 
     SCENE is a built-in name (list them with `mpnode scenes`) or a path to a
-    .toml scene file (schema: data_gen.scenes).  Each trajectory is
+    .toml scene file (schema: data_gen.scenes).  A scene set (e.g. quad3-5) writes one
+    file per member scene: -o DIR/ gives DIR/quad3.h5, ...; -o swarm (or swarm.h5)
+    gives swarm_quad3.h5, ...; -B then sets every member's B (default: each its own),
+    and member i draws with seed --seed + i.  Nothing is written until every
+    member is made.  Each trajectory is
     integrated with scipy solve_ivp (DOP853, rtol = atol = 1e-9 unless the scene
     says otherwise) and saved at t = k*dt.  A trajectory that fails (solver error,
     non-finite state, a pendulum reaching |cos theta| < 1e-6) is re-drawn from a
@@ -39,33 +47,61 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler)
     With --scheduler the trajectories are integrated on Dask in chunks; the arrays come
     back here and only this process writes FILE: the file is the same, bit for bit.
     """
-    from data_gen import generate as run
-    from data_gen import load_scene
+    from data_gen import SETS, load_scene
     from mpnode.base.atomic import check_outputs
     from mpnode.data import write_trajectories
 
-    check_outputs({"--output": output}, [scene])
-    s = load_scene(scene)
-    overrides = dict(trajectories=trajectories, horizon=horizon, dt=dt, seed=seed)
-    s = replace(s, **{k: v for k, v in overrides.items() if v is not None})
+    if scene in SETS:
+        shape = {k: v for k, v in dict(horizon=horizon, dt=dt).items() if v is not None}
+        scenes = SETS[scene].scenes(trajectories, seed, **shape)
+        outputs = set_paths(output, scenes)
+    elif os.path.isdir(output):
+        raise InputError("--output", output, "is a folder", "a file name (a folder only for a scene set)")
+    else:
+        overrides = dict(trajectories=trajectories, horizon=horizon, dt=dt, seed=seed)
+        scenes = [replace(load_scene(scene), **{k: v for k, v in overrides.items() if v is not None})]
+        outputs = [output]
+    check_outputs({f"--output ({s.name})": out for s, out in zip(scenes, outputs)}, [scene])
+    made = [_generate(s, workers, scheduler) for s in scenes]  # all made before any is written
+    for out, (traj, line) in zip(outputs, made):
+        write_trajectories(out, traj)
+        click.echo(f"wrote {out}: {line}")
+
+
+def _generate(s, workers, scheduler):
+    """(the trajectories of scene ``s``, the line that describes them)."""
+    from data_gen import generate as run
+
     start = time.perf_counter()
     with click.progressbar(length=s.trajectories, label=s.name, file=sys.stderr) as bar:
         traj = run(s, workers=workers, progress=bar.update, scheduler=scheduler)
-    write_trajectories(output, traj)
-    click.echo(f"wrote {output}: {s.name}, B={traj.n_trajectories}, T={traj.horizon}, N={traj.n_nodes}, "
-               f"dx={traj.state_dim}, {len(traj.graphs)} graph(s), {traj.attrs['redrawn']} re-drawn, "
-               f"{time.perf_counter() - start:.1f} s")
+    return traj, (f"{s.name}, B={traj.n_trajectories}, T={traj.horizon}, N={traj.n_nodes}, dx={traj.state_dim}, "
+                  f"{len(traj.graphs)} graph(s), seed {s.seed}, {traj.attrs['redrawn']} re-drawn, "
+                  f"{time.perf_counter() - start:.1f} s")
+
+
+def set_paths(output, scenes):
+    """The files of a scene set's members: DIR/<scene>.h5 when ``output`` is a folder (an existing
+    one, or a path ending in /), else <output without .h5>_<scene>.h5 (``-o swarm`` or ``-o
+    swarm.h5``: swarm_quad3.h5, swarm_quad4.h5, ...)."""
+    if os.path.isdir(output) or output.endswith(os.sep):
+        return [os.path.join(output, f"{s.name}.h5") for s in scenes]
+    prefix = output[:-3] if output.endswith(".h5") else output
+    return [f"{prefix}_{s.name}.h5" for s in scenes]
 
 
 @main.command("scenes")
 def scenes():
-    """List the built-in scenes, one per line: name, system, N, B, T, dt, description.
+    """List the built-in scenes, one per line: name, system, N, B, T, dt, description;
+    then the scene sets (several scenes trained on together, one file each).
 
-    Any of them can be passed to `mpnode generate`; B, T, dt and the seed can be
-    overridden there.  For anything else write a .toml scene file.
+    Any of them can be passed to `mpnode generate` and `mpnode train`; B, T, dt and the
+    seed can be overridden there.  For anything else write a .toml scene file.
     """
     from data_gen import BUILTIN
 
-    width = max(map(len, BUILTIN))
-    for name, s in BUILTIN.items():
+    from data_gen import SETS
+
+    width = max(map(len, [*BUILTIN, *SETS]))
+    for name, s in {**BUILTIN, **SETS}.items():
         click.echo(f"{name:<{width}}  {s.summary()}")

@@ -16,9 +16,11 @@ from .eval_cmd import check_plot, plot_option
 from .main import main
 
 #: `mpnode train SCENE` (a scene instead of files): trajectories generated and the default time budget
+#: (a scene set: its members' own counts, and the budget its evidence was measured at)
 SCENE_TRAJECTORIES = 300
 SCENE_EVAL_TRAJECTORIES = 100
 SCENE_TIME_LIMIT = "3m"
+SCENE_SET_TIME_LIMIT = "10m"
 DEFAULT = TrainConfig()
 MODEL_DEFAULT = ModelConfig()
 
@@ -148,7 +150,7 @@ def given_options(o, skip=("output", "resume", "trajectories", "recipe", "plot")
     return options
 
 
-def check_outputs(output, inputs, data_file=None, plot=None):
+def check_outputs(output, inputs, data_files=(), plot=None):
     """-o, the files beside it and --plot must not be one of the inputs, nor one another
     (nothing is written if one is); a --plot needs matplotlib (checked first)."""
     from mpnode.base.atomic import check_outputs as check
@@ -157,8 +159,8 @@ def check_outputs(output, inputs, data_file=None, plot=None):
 
     check_plot(plot)
     outputs = {"--output": output, "--output (log)": log_path(output), "--output (checkpoint)": state_path(output)}
-    if data_file:
-        outputs["--output (data)"] = data_file
+    for path in data_files:
+        outputs[f"--output (data {os.path.basename(path)})"] = path
     if plot:
         outputs["--plot"] = plot
     check(outputs, [p for p in inputs if os.path.exists(p)])
@@ -266,8 +268,9 @@ def print_validation(result):
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")
 @click.option("--dtype", type=click.Choice(DTYPES), default=MODEL_DEFAULT.dtype, show_default=True)
 @recipe_option("the MP-NODE paper's: mean aggregation, plateau schedule, batch 128")
-@click.option("--trajectories", type=click.IntRange(min=2), default=SCENE_TRAJECTORIES, show_default=True,
-              help="Only when DATA is a scene: trajectories to generate.")
+@click.option("--trajectories", type=click.IntRange(min=2),
+              help=f"Only when DATA is a scene: trajectories to generate (default {SCENE_TRAJECTORIES}; a scene set: "
+                   "each member's own count, or this many for each).")
 @training_options
 def train_cmd(data, trajectories, recipe, **o):
     """Learn a model from trajectory files DATA... (same dx, du and dt; graphs and N may differ).
@@ -275,7 +278,10 @@ def train_cmd(data, trajectories, recipe, **o):
     DATA may instead be one scene (a built-in name such as coupled_pendulum, or a
     .toml file): its data are generated beside the model (OUTPUT.data.h5, --trajectories
     of them), the model is trained (default time limit 3 minutes) and evaluated at the
-    end on fresh trajectories of the scene (another seed).
+    end on fresh trajectories of the scene (another seed).  Or a scene set (quad3-5:
+    3, 4 and 5 quadrotors): one file per member scene (OUTPUT.quad3.data.h5, ...;
+    member i with seed --seed + i), trained on together (default time limit 10
+    minutes), then evaluated on fresh trajectories of a size none of them has (quad6).
 
     Normalisation (z-score per state dimension) is fitted on the training split only
     and stored in the model.  Beside OUTPUT: OUTPUT.log.jsonl (one JSON line per epoch:
@@ -292,62 +298,80 @@ def train_cmd(data, trajectories, recipe, **o):
     """
     from mpnode import runs
 
+    from data_gen import SETS
+
     output, plot = o["output"], o["plot"]
     scene = _scene_of(data)
     if scene is None:
         check_outputs(output, data, plot=plot)
     else:
-        data = (output + ".data.h5",)
-        check_outputs(output, [scene], data[0], plot=plot)
-        if not (o["resume"] and os.path.exists(data[0])):
-            _generate(scene, data[0], trajectories, seed=o["seed"])
+        scenes = _training_scenes(scene, trajectories, o["seed"])
+        data = tuple(output + (f".{s.name}" if scene in SETS else "") + ".data.h5" for s in scenes)
+        check_outputs(output, [scene], data, plot=plot)
+        if not (o["resume"] and all(map(os.path.exists, data))):
+            for s, path in zip(scenes, data):
+                _generate(s, path)
     options = given_options(o)
     if scene is not None and o["time_limit"] is None:
-        options["time_limit"] = runs.parse_duration(SCENE_TIME_LIMIT)
+        options["time_limit"] = runs.parse_duration(SCENE_SET_TIME_LIMIT if scene in SETS else SCENE_TIME_LIMIT)
     datasets = runs.read_all(data)
     resume = o["resume"]
     result = run_with_progress(o["epochs"], options.get("time_limit"), output, lambda **kw: runs.train(
         data, output, options, recipe_name=recipe, resume=resume, datasets=datasets, **kw), plot)
     print_validation(result)
     if scene is not None:
-        _evaluate_on_fresh(scene, result.model, output, o["seed"] + 1)
+        _evaluate_on_fresh(scene, result.model, output, o["seed"])
 
 
 def _scene_of(data):
-    """The scene DATA names (one argument, not a file), or None for trajectory files."""
+    """The scene or scene set DATA names (one argument, not a file), or None for trajectory files."""
     if len(data) != 1 or os.path.exists(data[0]):
         return None
-    from data_gen import BUILTIN
+    from data_gen import BUILTIN, SETS
 
-    if data[0] in BUILTIN or data[0].endswith(".toml"):
+    if data[0] in BUILTIN or data[0] in SETS or data[0].endswith(".toml"):
         return data[0]
     raise InputError(data[0], "file", "does not exist and is not a built-in scene",
                      "trajectory files, or one scene name (see `mpnode scenes`)")
 
 
-def _generate(scene, path, trajectories, seed):
+def _training_scenes(scene, trajectories, seed):
+    """The Scenes whose data `mpnode train SCENE` generates: the scene's, or a scene set's members."""
     from dataclasses import replace
 
-    from data_gen import generate, load_scene
+    from data_gen import SETS, load_scene
+
+    if scene in SETS:
+        return SETS[scene].scenes(trajectories, seed)
+    return [replace(load_scene(scene), trajectories=trajectories or SCENE_TRAJECTORIES, seed=seed)]
+
+
+def _generate(s, path):
+    from data_gen import generate
     from mpnode.data import write_trajectories
 
-    s = replace(load_scene(scene), trajectories=trajectories, seed=seed)
     with click.progressbar(length=s.trajectories, label=f"generating {s.name}", file=sys.stderr) as bar:
         traj = generate(s, workers=2, progress=bar.update)
     write_trajectories(path, traj)
-    click.echo(f"generated {path}: {s.name}, B={s.trajectories}, T={s.horizon}, seed {seed}")
+    click.echo(f"generated {path}: {s.name}, B={s.trajectories}, T={s.horizon}, seed {s.seed}")
 
 
 def _evaluate_on_fresh(scene, model, output, seed):
+    """Evaluate on fresh trajectories: of the scene (seed + 1), or of a scene set's test scene (the
+    seed after its members')."""
+    from dataclasses import replace
+
+    from data_gen import SETS, load_scene
     from mpnode.data import read_trajectories
 
     from .eval_cmd import evaluate_and_report, format_report
 
+    name, seed = (SETS[scene].test, seed + len(SETS[scene].members)) if scene in SETS else (scene, seed + 1)
     with tempfile.TemporaryDirectory() as tmp:
         test = os.path.join(tmp, "test.h5")
-        _generate(scene, test, SCENE_EVAL_TRAJECTORIES, seed=seed)
+        _generate(replace(load_scene(name), trajectories=SCENE_EVAL_TRAJECTORIES, seed=seed), test)
         _, report = evaluate_and_report(model, read_trajectories(test),
-                                        f"{SCENE_EVAL_TRAJECTORIES} fresh {scene} trajectories (seed {seed})")
+                                        f"{SCENE_EVAL_TRAJECTORIES} fresh {name} trajectories (seed {seed})")
     click.echo(format_report(report, output))
 
 

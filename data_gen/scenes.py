@@ -1,8 +1,9 @@
 """Scenes: everything that decides a generated data set, by name or from a TOML file.
 
 A Scene is system + parameters + graph + initial-state sampler + B, T, dt + seeds.
-The built-in scenes are the data sets of the MP-NODE paper (docs/systems.md);
-anything else is a TOML file with this schema (example: scenes/example_gene_ring.toml)::
+The built-in scenes are the data sets of the MP-NODE paper (docs/systems.md); a scene set
+(``SETS``) names several of them whose files are trained on together.
+Anything else is a TOML file with this schema (example: scenes/example_gene_ring.toml)::
 
     description  = "one line"   # optional
     system       = "gene"       # required: coupled_pendulum | lorenz | gene | kuramoto | quadrotor_load
@@ -30,7 +31,7 @@ Unknown keys, wrong types and missing keys raise InputError(file, key, problem, 
 """
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from mpnode.base.errors import InputError
 from mpnode.base.tomlfile import load_toml
@@ -114,7 +115,49 @@ BUILTIN = {
         *(_gene(n, kind, initial="hotspots") for n in (16, 64) for kind in ("er", "ba", "ws")),
         _gene(16, "ba", seeds=(1, 2, 3, 4, 5), initial="hotspots"),
         *(_kuramoto(kind) for kind in ("er", "ba", "ws")),
-        *(_quad(n) for n in (3, 4, 5, 6)),
+        *(_quad(n) for n in (3, 4, 5, 6, 8, 12)),
+    ]
+}
+
+
+@dataclass(frozen=True)
+class SceneSet:
+    """Several built-in scenes whose data are trained on together: one file per member (a
+    trajectory file holds one node count), e.g. swarms of 3, 4 and 5 quadrotors, which is what
+    carries a module to a swarm size it has not seen (docs/scenes.md, "Scene sets").
+
+    members : ((scene name, trajectories), ...);  test : the scene `mpnode train SET` evaluates
+    the model on at the end (a size none of the members has)
+    """
+
+    name: str
+    description: str
+    members: tuple
+    test: str
+
+    def scenes(self, trajectories=None, seed=None, **overrides):
+        """The member scenes, each with its own trajectories (or ``trajectories`` for every one)
+        and member i with seed ``seed + i`` (default: the scene's own seed + i), so that no two
+        files share a draw; ``overrides`` (horizon, dt) apply to every member."""
+        out = []
+        for i, (name, count) in enumerate(self.members):
+            scene = BUILTIN[name]
+            out.append(replace(scene, trajectories=trajectories or count,
+                               seed=(scene.seed if seed is None else seed) + i, **overrides))
+        return out
+
+    def summary(self):
+        """One line for `mpnode scenes`."""
+        parts = ", ".join(f"{name} x {count}" for name, count in self.members)
+        return f"scene set: {parts}; evaluated on {self.test}: {self.description}"
+
+
+#: the built-in scene sets (name -> SceneSet)
+SETS = {
+    s.name: s
+    for s in [
+        SceneSet("quad3-5", "one module for any swarm size, trained on 3, 4 and 5 carriers",
+                 (("quad3", 500), ("quad4", 300), ("quad5", 300)), test="quad6"),
     ]
 }
 
@@ -125,6 +168,9 @@ def load_scene(name_or_path):
         return BUILTIN[name_or_path]
     if str(name_or_path).endswith(".toml"):
         return read_scene(name_or_path)
+    if name_or_path in SETS:
+        raise InputError("SCENE", name_or_path, "is a scene set (several files), which this command does not take",
+                         "one of its scenes: " + ", ".join(name for name, _ in SETS[name_or_path].members))
     raise InputError("SCENE", name_or_path, "is neither a built-in scene nor a .toml file",
                      "one of " + ", ".join(BUILTIN) + " (see `mpnode scenes`), or a path to a .toml scene")
 

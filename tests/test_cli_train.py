@@ -106,6 +106,37 @@ def test_train_a_scene_in_one_command(tmp_path):
     assert "speed against error" in res.output and "fresh coupled_pendulum" in res.output
 
 
+def test_train_a_scene_set_in_one_command(tmp_path, monkeypatch):
+    from cli import train_cmd
+
+    monkeypatch.setattr(train_cmd, "SCENE_EVAL_TRAJECTORIES", 2)
+    out = tmp_path / "swarm.h5"
+    res = run("train", "quad3-5", "-o", out, "--trajectories", 2, "--epochs", 1, "--hidden", 4, "--seed", 7)
+    assert res.exit_code == 0, res.output
+    files = [f"{out}.quad{n}.data.h5" for n in (3, 4, 5)]
+    assert [read_trajectories(f).n_nodes for f in files] == [3, 4, 5]
+    assert [read_trajectories(f).attrs["seed"] for f in files] == [7, 8, 9]
+    assert Model.load(out).attrs["trained_on"].count(".data.h5") == 3
+    assert "2 fresh quad6 trajectories (seed 10)" in res.output and "by state group" in res.output
+    # the swarm model runs on any number of carriers, in the scene's closed loop
+    res = run("simulate", out, "quad8", "-o", tmp_path / "s8.h5", "-B", 2, "-T", 3)
+    assert res.exit_code == 0, res.output
+    s8 = read_trajectories(tmp_path / "s8.h5")
+    assert s8.x.shape == (2, 4, 8, 13) and s8.u.shape == (2, 3, 8, 4)
+    assert s8.attrs["state_groups"][3] == "attitude"
+
+
+def test_generate_a_scene_set_writes_one_file_per_scene(tmp_path):
+    res = run("generate", "quad3-5", "-o", tmp_path / "sw", "-B", 2, "-T", 2, "--seed", 5, "--workers", 1)
+    assert res.exit_code == 0, res.output
+    assert [read_trajectories(tmp_path / f"sw_quad{n}.h5").attrs["seed"] for n in (3, 4, 5)] == [5, 6, 7]
+    (tmp_path / "d").mkdir()
+    assert run("generate", "quad3-5", "-o", f"{tmp_path / 'd'}/", "-B", 2, "-T", 2, "--workers", 1).exit_code == 0
+    assert sorted(os.listdir(tmp_path / "d")) == ["quad3.h5", "quad4.h5", "quad5.h5"]
+    res = run("generate", "quad3", "-o", tmp_path / "d", "-B", 2)
+    assert res.exit_code == 2 and "folder" in res.output
+
+
 def gene_file(path, B=6, T=4):
     from dataclasses import replace
 

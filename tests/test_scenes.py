@@ -5,7 +5,7 @@ from dataclasses import replace
 import pytest
 
 import data_gen
-from data_gen import BUILTIN, generate, load_scene, read_scene
+from data_gen import BUILTIN, SETS, generate, load_scene, read_scene
 from data_gen.scenes import check_scene
 from mpnode.base.errors import InputError
 
@@ -15,7 +15,7 @@ EXPECTED = ["coupled_pendulum", "lorenz3", "lorenz7", "lorenz10", "lorenz10_medi
             "gene16_er", "gene16_ba", "gene16_ws", "gene64_er", "gene64_ba", "gene64_ws", "gene16_ba_multi",
             "gene16_er_hot", "gene16_ba_hot", "gene16_ws_hot", "gene64_er_hot", "gene64_ba_hot", "gene64_ws_hot",
             "gene16_ba_multi_hot", "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws", "quad3", "quad4",
-            "quad5", "quad6"]
+            "quad5", "quad6", "quad8", "quad12"]
 
 
 def test_builtin_scenes():
@@ -98,3 +98,16 @@ def test_graph_the_physics_cannot_run_on(tmp_path):
 def test_missing_scene_file():
     with pytest.raises(InputError, match="does not exist"):
         load_scene("/nonexistent/scene.toml")
+
+
+def test_a_scene_set_names_built_in_scenes_with_their_own_seeds():
+    swarm = SETS["quad3-5"]
+    scenes = swarm.scenes()
+    assert [(s.name, s.graph.n_nodes, s.trajectories, s.seed) for s in scenes] == \
+        [("quad3", 3, 500, 0), ("quad4", 4, 300, 1), ("quad5", 5, 300, 2)]
+    assert BUILTIN[swarm.test].graph.n_nodes not in {s.graph.n_nodes for s in scenes}  # a size it never saw
+    again = swarm.scenes(trajectories=7, seed=40, horizon=3)
+    assert [(s.trajectories, s.seed, s.horizon) for s in again] == [(7, 40, 3), (7, 41, 3), (7, 42, 3)]
+    assert not set(SETS) & set(BUILTIN)
+    with pytest.raises(InputError, match="scene set"):
+        load_scene("quad3-5")
