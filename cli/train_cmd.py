@@ -378,10 +378,11 @@ def _evaluate_on_fresh(scene, model, output, seed):
 @main.command("finetune")
 @click.argument("model_file", metavar="MODEL", type=click.Path(dir_okay=False))
 @click.argument("data", nargs=-1, required=True, type=click.Path(dir_okay=False))
-@click.option("--refit-norm", is_flag=True,
-              help="Fit the normalisation on the new training split instead of keeping the model's; the weights "
-                   "change with it so that the model starts from the same predictions, and the loss weighs each "
-                   "state dimension by the new data's spread (as `mpnode eval` does).")
+@click.option("--refit-norm/--keep-norm", default=None,
+              help="Fit the normalisation on the new training split, or keep the model's.  Refitting changes the "
+                   "weights with it so that the model starts from the same predictions, and the loss weighs each "
+                   "state dimension by the new data's spread (as `mpnode eval` does).  Default: the recipe's "
+                   "(auto: refit; paper: keep).")
 @recipe_option("the paper's training settings: plateau schedule, batch 128")
 @training_options
 def finetune_cmd(model_file, data, refit_norm, recipe, **o):

@@ -7,7 +7,7 @@ from click.testing import CliRunner
 from scipy.integrate import solve_ivp
 
 from cli.main import main
-from data_gen import BUILTIN, generate, integrate, make_rhs, simulate
+from data_gen import BUILTIN, SETS, generate, integrate, make_rhs, simulate
 from data_gen.initial import uniform
 from data_gen.systems import SYSTEMS, lorenz_coupling
 from mpnode.base.errors import NumericalError
@@ -174,5 +174,6 @@ def test_cli_scenes_lists_every_builtin():
     r = cli("scenes")
     assert r.exit_code == 0
     lines = r.stdout.splitlines()
-    assert [line.split()[0] for line in lines] == list(BUILTIN)
-    assert all("B=" in line and "dt=" in line for line in lines)
+    assert [line.split()[0] for line in lines] == list(BUILTIN) + list(SETS)
+    assert all("B=" in line and "dt=" in line for line in lines[:len(BUILTIN)])
+    assert all("scene set: quad3 x 500" in line for line in lines[len(BUILTIN):])

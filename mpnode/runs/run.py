@@ -121,10 +121,11 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     return fit(model, data, config, output, resume=resume, progress=progress, notify=notify, model_attrs=attrs)
 
 
-def finetune(model_path, paths, output, options=None, *, refit_norm=False, recipe_name="auto", resume=False,
+def finetune(model_path, paths, output, options=None, *, refit_norm=None, recipe_name="auto", resume=False,
              progress=None, notify=None, datasets=None, names=None, parent_name=None):
-    """Continue training the model in ``model_path`` on ``paths``: exactly its weights, settings
-    and (unless ``refit_norm``) normalisation; model options other than substeps are the model's.
+    """Continue training the model in ``model_path`` on ``paths``: exactly its weights and settings;
+    model options other than substeps are the model's.  refit_norm : fit the normalisation on the
+    new training split (True) or keep the model's (False); None: as the recipe says (``norm``).
     The training options the user leaves unset come from ``recipe_name``'s fine-tuning settings.
     names, parent_name : what to call the data files and the model in attributes (see `train`)."""
     datasets = datasets or read_all(paths)
@@ -133,11 +134,13 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
     if fixed:
         raise InputError("options", sorted(fixed)[0], "cannot change when fine-tuning",
                          "only training options (and substeps); the model keeps its kind and sizes")
+    if refit_norm is not None:
+        options["norm"] = "refit" if refit_norm else "keep"
     model = None if resume else Model.load(model_path)
     if not resume:
         options, chosen = fill_unset(options, finetune_recipe(recipe_name, model.kind))
         _announce(notify, chosen, f"recipe {recipe_name} for fine-tuning")
-    model_config, config = split_options({"norm": "refit" if refit_norm else "keep", **options})
+    model_config, config = split_options({"norm": "keep", **options})
     if model is not None and "substeps" in options:
         model = model.with_spec(substeps=model_config.substeps)
     names = list(map(str, names or paths))

@@ -64,7 +64,7 @@ class RunPlan:
     data: list
     recipe: str = "auto"
     parent: str = None
-    refit_norm: bool = False
+    refit_norm: bool = None  # None: the recipe decides
     settings: str = ""  # what sets this run apart, for the summary
     parent_model: str = None  # where the parent's model file is on the client (for the model's attributes)
     key: str = ""  # digest of everything that decides the run (settings, data contents, parent's key)
@@ -204,7 +204,9 @@ def _listed_runs(doc, shared, data, recipe, path, folder):
         tests = _files(table, "test", path, folder, required=False) if "test" in table else None
         points = table.pop("test_points", None)
         table.pop("data", None), table.pop("test", None)
-        refit = bool(table.pop("refit_norm", False))
+        refit = table.pop("refit_norm", None)
+        if refit is not None and not isinstance(refit, bool):
+            raise InputError(path, f"{where}.refit_norm", f"is {refit!r}", "true or false (absent: the recipe's)")
         run_recipe = _text(table.pop("recipe", recipe), path, f"{where}.recipe")
         base = shared if parent is None else {k: v for k, v in shared.items() if k not in MODEL_OPTIONS}
         options = _options({**base, **table}, path, f"{where} ({name})", finetune=parent is not None)
