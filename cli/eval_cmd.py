@@ -238,7 +238,7 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
             click.echo(f"wrote {plot}")
     if predictions:
         attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report),
-                 **{k: traj.attrs[k] for k in ("state_names",) if k in traj.attrs}}
+                 **{k: traj.attrs[k] for k in ("state_names", "state_groups") if k in traj.attrs}}
         pf = _or_why(lambda: predictions_file(result.predictions, traj.graphs, traj.graph_index, traj.dt, traj.system,
                                               os.path.abspath(model_file), traj.u, attrs), result.stability)
         write_trajectories(predictions, pf)

@@ -81,7 +81,7 @@ class EvalResult:
         """A JSON-ready dict (no predictions; inf/NaN as strings)."""
         hold = {**_errors(self.hold_per_step), "first_step_not_below": self.first_step_not_below_hold()}
         groups = {name: {"dims": dims, **_errors(self.per_dim[:, dims].mean(axis=1)),
-                         "hold_nmse": _num(float(self.hold_per_dim[1:, dims].mean())),
+                         **{f"hold_{k}": v for k, v in _errors(self.hold_per_dim[:, dims].mean(axis=1)).items()},
                          "first_step_not_below_hold": self.first_step_not_below_hold(dims)}
                   for name, dims in (self.groups or {}).items()}
         return {"trajectories": self.n_trajectories, "horizon": self.horizon, "nodes": self.n_nodes,
