@@ -85,7 +85,7 @@ def check_plot(plot):
 
 
 def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20, substeps=None,
-                        substeps_tol=None, max_substeps=None):
+                        substeps_tol=None, max_substeps=None, warmup=0, truth=None):
     """Evaluate, and time the reference simulator beside the model when the file names one:
     returns (EvalResult, report dict)."""
     from data_gen.reference import speed_against_reference
@@ -94,9 +94,9 @@ def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20
 
     result = evaluate(model, traj, source=source, allow_dt_mismatch=allow_dt, substeps=substeps,
                       substeps_tol=substeps_tol or stepsize.DEFAULT_TOL,
-                      max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS)
-    report = {"data": source, **result.summary()}
-    if reference_sample > 0:
+                      max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS, warmup=warmup, truth=truth)
+    report = {"data": source, **result.summary(), "state_names": traj.attrs.get("state_names")}
+    if reference_sample > 0 and traj.regular:
         report["reference"] = speed_against_reference(model, traj, result, reference_sample)
     return result, report
 
@@ -111,8 +111,16 @@ def format_report(report, model_name):
     lines = [f"{model_name} on {r['data']}: B={r['trajectories']}, T={r['horizon']}, N={r['nodes']}"]
     per = r["nmse_per_step"]
     t = r["horizon"]
-    steps = sorted({1, max(1, t // 4), max(1, t // 2), max(1, 3 * t // 4), t})
-    lines.append(f"  normalised MSE, mean over steps 1..{t}: {_g(r['nmse'])}   last step: {_g(r['nmse_last'])}")
+    first = max(1, r.get("warmup", 0))
+    steps = sorted({max(first, s) for s in (1, t // 4, t // 2, 3 * t // 4, t)})
+    if r.get("warmup"):
+        lines.append(f"  warm-up: each prediction starts from the first {r['warmup']} observations; scored after them")
+    lines.append(f"  normalised MSE, mean over steps {first}..{t}: {_g(r['nmse'])}   last step: {_g(r['nmse_last'])}")
+    if len(r.get("nmse_per_dim", [])) > 1:
+        names = r.get("state_names") or [f"x[{k}]" for k in range(len(r["nmse_per_dim"]))]
+        lines.append("  per dimension: " + ", ".join(f"{n}: {_g(v)}" for n, v in zip(names, r["nmse_per_dim"]))
+                     + (f" (dimension(s) {r['hidden_dims']} never measured in training: not scored)"
+                        if r.get("hidden_dims") else ""))
     lines.append("  per step: " + ", ".join(f"{s}: {_g(per[s])}" for s in steps))
     if r["first_bad_step"] is None:
         lines.append("  blow-ups: none (every prediction finite and inside 10x the data's range)")
@@ -158,11 +166,19 @@ def format_report(report, model_name):
               help="Roll the model out with the file's dt even if it was trained with another.")
 @click.option("--reference-sample", type=click.IntRange(min=0), default=20, show_default=True,
               help="Trajectories the reference simulator is timed on (0: skip the reference).")
+@click.option("--warmup", type=click.IntRange(min=0), default=0, show_default=True, metavar="K",
+              help="Let the model see the first K observations of each trajectory before it predicts: a "
+                   "model with an initial-state encoder estimates from them what was not measured and what "
+                   "noise hides; the error counts the observations after them.")
+@click.option("--truth", type=click.Path(dir_okay=False), metavar="CLEAN.h5",
+              help="Score against the clean states of the same trajectories in this file (DATA noisy); "
+                   "default: DATA's own clean truth if it keeps one (mpnode generate --noise), else its "
+                   "observations.")
 @plot_option("truth against prediction for the first trajectories and nodes, per state dimension, and the "
              "error over time with the predictable horizon")
 @substeps_options
-def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, reference_sample, plot, substeps,
-             substeps_tol, max_substeps):
+def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, reference_sample, warmup, truth, plot,
+             substeps, substeps_tol, max_substeps):
     """Roll MODEL out from every initial state of DATA and report error and speed.
 
     Error: normalised MSE (squared error / per-dimension variance of DATA's true
@@ -191,11 +207,12 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
 
     check_plot(plot)
     outputs = {k: v for k, v in (("--predictions", predictions), ("--plot", plot)) if v}
-    check_outputs(outputs, [model_file, data])
+    check_outputs(outputs, [model_file, data] + ([truth] if truth else []))
     model = Model.load(model_file)
     traj = read_trajectories(data)
+    clean = None if truth is None else read_trajectories(truth).x
     result, report = evaluate_and_report(model, traj, data, allow_dt_mismatch, reference_sample, substeps,
-                                         substeps_tol, max_substeps)
+                                         substeps_tol, max_substeps, warmup, clean)
     report["model"] = model_file
     click.echo(json.dumps(report, indent=2, allow_nan=False) if as_json else format_report(report, model_file))
     if plot:  # before the predictions file, which refuses non-finite predictions: a blow-up gets its figure
@@ -208,7 +225,7 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
         attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report),
                  **{k: traj.attrs[k] for k in ("state_names",) if k in traj.attrs}}
         pf = _or_why(lambda: predictions_file(result.predictions, traj.graphs, traj.graph_index, traj.dt, traj.system,
-                                              os.path.abspath(model_file), traj.u, attrs), result.stability)
+                                              os.path.abspath(model_file), traj.u, attrs, traj.t), result.stability)
         write_trajectories(predictions, pf)
         if not as_json:
             click.echo(f"wrote {predictions}")

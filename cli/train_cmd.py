@@ -265,6 +265,11 @@ def print_validation(result):
 @click.option("--self-messages", is_flag=True,
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")
 @click.option("--dtype", type=click.Choice(DTYPES), default=MODEL_DEFAULT.dtype, show_default=True)
+@click.option("--encoder-window", type=click.IntRange(min=0), metavar="W",
+              help="Learn, with the model, an initial-state encoder that estimates each trajectory's whole "
+                   "starting state from its first W observations: values nobody measured (a dimension that is "
+                   "NaN throughout the data is such a hidden state) and noise on the measured ones; 0: start "
+                   "from the first observation as it is.  Default: the recipe's.")
 @recipe_option("the MP-NODE paper's: mean aggregation, plateau schedule, batch 128")
 @click.option("--trajectories", type=click.IntRange(min=2), default=SCENE_TRAJECTORIES, show_default=True,
               help="Only when DATA is a scene: trajectories to generate.")

@@ -31,6 +31,9 @@ class ModelConfig:
         around the MLP (mpnode.engine.spec.Aggregation); either of the last two implies it
     self_messages : a node also hears its own message;  zero_messages : messages held at 0
     substeps : RK4 steps per dt;  dtype : "float32" or "float64"
+    encoder_window : W > 0: the model estimates a trajectory's whole initial state from its first
+        W observations (mpnode.model.encoder: values nobody measured, noise); 0: a rollout starts
+        from the first observation as it is
     """
 
     kind: str = option("mpnode", aliases=("model",))
@@ -44,12 +47,14 @@ class ModelConfig:
     zero_messages: bool = False
     substeps: int = 1
     dtype: str = "float32"
+    encoder_window: int = 0
 
     def __post_init__(self):
         _check_choice("kind", self.kind, KINDS)
         _check_int("message_dim", self.message_dim, 0)
         _check_int("hidden", self.hidden, 1)
         _check_int("substeps", self.substeps, 1)
+        _check_int("encoder_window", self.encoder_window, 0)
         _check_choice("aggregation", self.aggregation, (None,) + AGGREGATIONS)
         _check_choice("linear_aggregation", self.linear_aggregation, (None,) + AGGREGATIONS)
         _check_choice("linear_target", self.linear_target, LINEAR_TARGETS)
@@ -83,7 +88,7 @@ class ModelConfig:
                          message_dim=self.message_dim if mpnode else 0, hidden=self.hidden, dt=float(dt),
                          substeps=self.substeps, self_messages=bool(self.self_messages),
                          zero_messages=bool(self.zero_messages) and mpnode, aggregation=aggregation,
-                         n_nodes=None if n_nodes is None else int(n_nodes))
+                         n_nodes=None if n_nodes is None else int(n_nodes), encoder_window=self.encoder_window)
 
 
 def configured(options=None, base=None):

@@ -80,11 +80,12 @@ def _attrs(paths, datasets, **more):
     return {"trained_on": ";".join(os.path.abspath(p) for p in paths), "system": datasets[0].system, **more}
 
 
-def with_recipe(options, name, system):
-    """(options completed by recipe ``name`` for ``system``, the recipe's settings used)."""
+def with_recipe(options, name, datasets):
+    """(options completed by recipe ``name`` for the system of ``datasets``, the recipe's settings used)."""
     options = canonical(options)
     model = configured({k: v for k, v in options.items() if k in MODEL_OPTIONS})
-    return fill_unset(options, recipe(name, system, model.kind, model.messages))
+    complete = all(t.complete for t in datasets)
+    return fill_unset(options, recipe(name, datasets[0].system, model.kind, model.messages, complete))
 
 
 def fill_unset(options, settings):
@@ -110,14 +111,15 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     a sweep's worker trains on copies and names the originals).
     """
     datasets = datasets or read_all(paths)
-    options, chosen = with_recipe(options, recipe_name, datasets[0].system)
+    options, chosen = with_recipe(options, recipe_name, datasets)
     if not resume:
         _announce(notify, chosen, f"recipe {recipe_name} for {datasets[0].system}")
     model_config, config = split_options(options)
     names = list(map(str, names or paths))
     data = TrainingData(datasets, config, names)
     model = None if resume else new_model(data, model_config, config.seed)
-    attrs = _attrs(names, datasets, recipe=recipe_name, schedule=config.schedule)
+    attrs = _attrs(names, datasets, recipe=recipe_name, schedule=config.schedule,
+                   unmeasured_dims=[int(k) for k in data.unmeasured_dims()])
     return fit(model, data, config, output, resume=resume, progress=progress, notify=notify, model_attrs=attrs)
 
 

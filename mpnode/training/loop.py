@@ -35,7 +35,7 @@ from mpnode import engine
 from mpnode.base.errors import InputError
 from mpnode.engine import layouts
 from mpnode.evaluation import metrics
-from mpnode.model import check_data
+from mpnode.model import check_data, encoder
 
 from . import losses
 from .batches import TrainingData, epoch_batches, split_settings
@@ -109,9 +109,11 @@ def run_epoch(state, parts, notify):
     grad = np.empty(theta.size)
     new_theta = np.empty_like(theta)
     stats = EpochStats()
+    rng = np.random.default_rng([config.seed, 5, state.epoch + 1])
     for p, sel in epoch_batches(parts, config.batch_size, config.seed, state.epoch + 1):
-        x, u, g = parts[p].batch(sel)
-        loss, gtheta, _ = losses.value_and_grad(spec, theta, x, g, u, config.loss)
+        batch = parts[p].batch(sel)
+        visible = warmups(rng, spec.encoder_window, len(sel), parts[p].n_nodes)
+        loss, gtheta = losses.batch_value_and_grad(spec, theta, batch, config.loss, visible)
         grad[:] = gtheta
         problem = bad_loss(loss, grad, state.ref_loss, config)
         if problem is None:
@@ -124,8 +126,17 @@ def run_epoch(state, parts, notify):
             bad_step(state, problem, notify)
             continue
         theta[:] = new_theta
-        stats.add(loss, x.shape[1], norm)
+        stats.add(loss, batch.x.shape[1], norm)
     return stats
+
+
+def warmups(rng, window, n_trajectories, n_nodes):
+    """How many of its first observations the initial-state encoder sees, per node of a batch:
+    1..W at random per trajectory, so that it learns to start from a warm-up of any length up
+    to its window (0 for a model without an encoder)."""
+    if not window:
+        return 0
+    return np.repeat(rng.integers(1, window + 1, size=n_trajectories), n_nodes)
 
 
 def bad_loss(loss, grad, ref_loss, config):
@@ -190,29 +201,33 @@ def cosine_lr(config, used):
 # ---------------------------------------------------------------------------
 class Validator:
     """Full-horizon rollouts of the validation parts (no noise): the loss per node, and per file
-    the normalised MSE `mpnode eval` would report (mpnode.evaluation.metrics, steps 1..T)."""
+    the normalised MSE `mpnode eval` would report (mpnode.evaluation.metrics: the observed values
+    of steps 1..T).  A model with an initial-state encoder sees each trajectory's whole window."""
 
     def __init__(self, parts, loss, chunk=8192):
         self.loss = loss
-        self.parts = []  # (source, trajectories, variance per dimension, [(x, u, graph) chunks])
+        self.parts = []  # (source, trajectories, variance per dimension, [Batch chunks])
         for part in parts:
             size = max(1, chunk // part.n_nodes)
             jobs = [part.batch(np.arange(i, min(i + size, part.n))) for i in range(0, part.n, size)]
             self.parts.append((part.source, part.n, metrics.variance(part.x), jobs))
-        self.n_nodes = sum(x.shape[1] for *_, jobs in self.parts for x, _, _ in jobs)
+        self.n_nodes = sum(b.x.shape[1] for *_, jobs in self.parts for b in jobs)
 
     def __call__(self, spec, theta):
         """(loss, per-file figures); the loss is inf when a rollout is non-finite."""
         total, files = 0.0, []
         for source, n, var, jobs in self.parts:
-            steps = 0.0
-            for x, u, g in jobs:
-                pred = engine.forward(spec, theta, x[0], g, u, x.shape[0] - 1)
-                total += losses.value(pred, x, self.loss) * x.shape[1]
-                steps = steps + metrics.normalised_sq_error(pred[1:], x[1:], var=var).sum(axis=(1, 2))
-            count = sum(x.shape[1] for x, _, _ in jobs) * len(var)  # node rows times dimensions
-            files.append({"file": source, "trajectories": n, "nmse": float(steps.mean() / count),
-                          "nmse_last": float(steps[-1] / count)})
+            sums, counts = 0.0, 0
+            for b in jobs:
+                x0, _ = encoder.start(spec, theta, b.x, b.intervals, spec.encoder_window)
+                pred = engine.forward(spec, theta, x0, b.graph, b.u, b.x.shape[0] - 1, intervals=b.intervals)
+                total += losses.value(pred, b.x, self.loss) * b.x.shape[1]
+                err = metrics.normalised_sq_error(pred[1:], b.x[1:], var=var)
+                sums = sums + np.where(np.isnan(err), 0, err).sum(axis=(1, 2))
+                counts = counts + (~np.isnan(err)).sum(axis=(1, 2))
+            with np.errstate(invalid="ignore"):
+                files.append({"file": source, "trajectories": n, "nmse": float(sums.sum() / counts.sum()),
+                              "nmse_last": float(sums[-1] / counts[-1])})
         return total / self.n_nodes, files
 
 
