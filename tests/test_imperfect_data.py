@@ -3,11 +3,13 @@ measured -- the format (version 2), the engine's per-trajectory time grid and it
 the initial-state encoder, training and evaluation on such data, and `mpnode generate`'s
 degradations."""
 import json
+from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from doc_snippets import fenced_blocks, run_python, run_shell
 from engine_helpers import make_graph, problem, spec_
 
 from cli.main import main
@@ -214,3 +216,17 @@ def test_training_takes_such_data_as_they_are_and_eval_scores_after_a_warm_up(de
         assert res.exit_code == 0, res.output
         scores[data, truth] = json.loads(res.output)["nmse"]
     assert scores[noisy, None] == scores[observations, clean] != scores[observations, None]
+
+
+def test_the_worked_example_runs_as_written(tmp_path, monkeypatch):
+    """docs/data-as-they-come.md in one folder: its python, then its commands (a shorter training)."""
+    doc = Path(__file__).resolve().parents[1] / "docs" / "data-as-they-come.md"
+    blocks = fenced_blocks(doc.read_text())
+    assert [lang for lang, _, _ in blocks] == ["python", ""]
+    run_python(blocks[0][1], tmp_path, monkeypatch)
+    commands = blocks[1][1]
+    assert commands.count("--time-limit 5m") == 1
+    run_shell(commands.replace("--time-limit 5m", "--epochs 2"), tmp_path)
+    assert (tmp_path / "log_eval.png").exists()
+    log = read_trajectories(tmp_path / "log.h5")
+    assert not log.regular and log.unmeasured_dims().tolist() == [1]
