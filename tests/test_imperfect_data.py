@@ -230,3 +230,20 @@ def test_the_worked_example_runs_as_written(tmp_path, monkeypatch):
     assert (tmp_path / "log_eval.png").exists()
     log = read_trajectories(tmp_path / "log.h5")
     assert not log.regular and log.unmeasured_dims().tolist() == [1]
+
+
+def test_the_simulator_warms_up_on_observations_and_stands_at_the_last_one():
+    m = Model.create(2, message_dim=3, hidden=8, dt=0.1, dtype=np.float64, encoder_window=3)
+    m.params["E2"][:] = 0.1  # an encoder that does something
+    g = Graph.from_edges(3, RING)
+    rng = np.random.default_rng(4)
+    obs = rng.standard_normal((2, 3, 3, 2))
+    obs[:, :, :, 1] = np.nan
+    times = np.array([[0.0, 0.07, 0.2], [0.0, 0.1, 0.15]])
+    from mpnode import Simulator
+
+    sim = Simulator(m, g)
+    now = sim.warm_up(obs, times)
+    start = m.initial_state(obs, times)
+    np.testing.assert_allclose(now, m.rollout(start, g, times=times)[:, -1], rtol=1e-12, atol=1e-12)
+    assert np.isfinite(sim.step()).all()

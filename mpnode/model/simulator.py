@@ -14,7 +14,7 @@ from mpnode import engine
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph, as_graph, is_networkx
 
-from .model import Model, batch_graph
+from .model import Model, batch_graph, node_intervals, to_time_major
 
 
 class Simulator:
@@ -56,6 +56,23 @@ class Simulator:
         self._flat = batch_graph(self.graph, x0.shape[0])  # the batch graph rollout uses: same plan
         self._z = engine.initial_state(spec, m.normalize_x(x0).reshape(-1, spec.state_dim), m.dtype)
         self.steps = 0
+        return self.state
+
+    def warm_up(self, observations, times=None, u=None):
+        """Start B copies from their first K observations (B, K, N, dx), in the data's units, NaN
+        where not observed (times (B, K), or None: every dt; u (B, K-1, N, du) between them): the
+        model estimates where they started from all K (its initial-state encoder sees them) and
+        integrates through them, so the simulator stands at the last observation, ready to step.
+        Returns that state (B, N, dx)."""
+        m, spec = self.model, self.model.spec
+        obs = np.asarray(observations, dtype=np.float64)
+        self.reset(m.initial_state(obs, times))
+        b, k, n = obs.shape[:3]
+        if k > 1:
+            iv = None if times is None else np.repeat(node_intervals(times), n, axis=1)
+            un = None if u is None else to_time_major(m.normalize_u(np.asarray(u)))
+            _, self._z = engine.integrate(spec, m.theta, self._z, self._flat, un, k - 1, backend=self.backend,
+                                          intervals=iv)
         return self.state
 
     def step(self, u=None):

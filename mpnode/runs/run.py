@@ -118,8 +118,9 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     names = list(map(str, names or paths))
     data = TrainingData(datasets, config, names)
     model = None if resume else new_model(data, model_config, config.seed)
+    hidden = [int(k) for k in data.unmeasured_dims()]
     attrs = _attrs(names, datasets, recipe=recipe_name, schedule=config.schedule,
-                   unmeasured_dims=[int(k) for k in data.unmeasured_dims()])
+                   **({"unmeasured_dims": hidden} if hidden else {}))
     return fit(model, data, config, output, resume=resume, progress=progress, notify=notify, model_attrs=attrs)
 
 
