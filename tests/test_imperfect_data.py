@@ -247,3 +247,18 @@ def test_the_simulator_warms_up_on_observations_and_stands_at_the_last_one():
     start = m.initial_state(obs, times)
     np.testing.assert_allclose(now, m.rollout(start, g, times=times)[:, -1], rtol=1e-12, atol=1e-12)
     assert np.isfinite(sim.step()).all()
+
+
+def test_refitting_the_normalisation_keeps_what_a_model_with_an_encoder_computes():
+    from mpnode.model.renormalise import renormalised
+
+    rng = np.random.default_rng(9)
+    m = Model.create(2, message_dim=3, hidden=8, dt=0.1, dtype=np.float64, encoder_window=3)
+    m.theta[:] = rng.uniform(-0.5, 0.5, m.theta.size)
+    m.x_mean, m.x_std = np.array([0.3, -1.0]), np.array([2.0, 0.5])
+    obs = rng.standard_normal((2, 3, 3, 2))  # complete windows: there the change is exact
+    again = renormalised(m, np.array([-0.2, 0.4]), np.array([0.7, 3.0]))
+    np.testing.assert_allclose(again.initial_state(obs), m.initial_state(obs), rtol=1e-10, atol=1e-10)
+    g = Graph.from_edges(3, RING)
+    start = m.initial_state(obs)
+    np.testing.assert_allclose(again.rollout(start, g, steps=4), m.rollout(start, g, steps=4), rtol=1e-9, atol=1e-9)

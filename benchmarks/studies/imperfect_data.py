@@ -10,7 +10,7 @@ steps 6..T).  Prints a markdown table: test nMSE against the truth, its ratio to
 epochs and seconds per epoch.
 
     python benchmarks/studies/imperfect_data.py --out DIR [--systems coupled_pendulum,lorenz3]
-        [--conditions clean,noise] [--minutes 5] [--extra noise:--encoder-window=5] [--lock FILE]
+        [--conditions clean,noise] [--minutes 5 | --epochs N] [--extra noise:--encoder-window=5] [--lock FILE]
 """
 import argparse
 import json
@@ -44,12 +44,12 @@ def data(folder, system, condition, trajectories, seed):
     return path
 
 
-def run(folder, system, condition, label, extra, minutes, lock):
+def run(folder, system, condition, label, extra, budget, lock):
     """Train (unless done) and evaluate one cell: its row of the table as a dict."""
     train, test = data(folder, system, condition, 300, 11), data(folder, system, condition, 100, 12)
     model = folder / f"{system}_{label}.h5"
     if not model.exists():
-        mpnode("train", train, "-o", model, "--time-limit", f"{minutes}m", *extra, lock=lock)
+        mpnode("train", train, "-o", model, *budget, *extra, lock=lock)
     report = json.loads(mpnode("eval", model, test, "--warmup", WARMUP, "--json", "--reference-sample", 0))
     log = [json.loads(line) for line in open(f"{model}.log.jsonl")][1:]
     return {"system": system, "condition": label, "nmse": report["nmse"], "nmse_per_dim": report["nmse_per_dim"],
@@ -72,7 +72,10 @@ def main(argv=None):
     p.add_argument("--out", type=Path, required=True, help="folder for data, models and results.json")
     p.add_argument("--systems", default=",".join(SYSTEMS))
     p.add_argument("--conditions", default=",".join(CONDITIONS))
-    p.add_argument("--minutes", type=float, default=5.0, help="training budget of every model")
+    budget = p.add_mutually_exclusive_group()
+    budget.add_argument("--minutes", type=float, default=5.0, help="training budget of every model (wall time)")
+    budget.add_argument("--epochs", type=int, help="training budget of every model in epochs instead (the same work "
+                        "whatever else the machine runs; an epoch's cost is in the table)")
     p.add_argument("--extra", action="append", default=[], metavar="CONDITION:FLAG=VALUE",
                    help="also train CONDITION with this train flag (a variant row), e.g. noise:--encoder-window=5")
     p.add_argument("--lock", type=Path, help="hold this file's lock while a model trains (one timed run at a time)")
@@ -85,8 +88,9 @@ def main(argv=None):
     rows = []
     for system in args.systems.split(","):
         for condition, label, extra in cells:
+            budget = ["--epochs", args.epochs] if args.epochs else ["--time-limit", f"{args.minutes}m"]
             rows.append(run(args.out, system, condition, label.replace(" ", "_").replace("=", ""), extra,
-                            args.minutes, args.lock))
+                            budget, args.lock))
             rows[-1]["condition"] = label
             print(json.dumps(rows[-1]), flush=True)
     (args.out / "results.json").write_text(json.dumps(rows, indent=1))
