@@ -270,6 +270,9 @@ def print_validation(result):
                    "starting state from its first W observations: values nobody measured (a dimension that is "
                    "NaN throughout the data is such a hidden state) and noise on the measured ones; 0: start "
                    "from the first observation as it is.  Default: the recipe's.")
+@click.option("--latent-dims", type=click.IntRange(min=0), metavar="K",
+              help="Give each node K more state dimensions than the data have, never observed: room for what "
+                   "the data do not show (the initial-state encoder estimates where they start).")
 @recipe_option("the MP-NODE paper's: mean aggregation, plateau schedule, batch 128")
 @click.option("--trajectories", type=click.IntRange(min=2), default=SCENE_TRAJECTORIES, show_default=True,
               help="Only when DATA is a scene: trajectories to generate.")

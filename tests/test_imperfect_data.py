@@ -262,3 +262,18 @@ def test_refitting_the_normalisation_keeps_what_a_model_with_an_encoder_computes
     g = Graph.from_edges(3, RING)
     start = m.initial_state(obs)
     np.testing.assert_allclose(again.rollout(start, g, steps=4), m.rollout(start, g, steps=4), rtol=1e-9, atol=1e-9)
+
+
+def test_latent_dimensions_are_room_beside_the_data(degraded, tmp_path):
+    """--latent-dims K: the model carries K states per node no data measure; its predictions file
+    has the data's own dimensions."""
+    run = CliRunner().invoke
+    model, pred = str(tmp_path / "m.h5"), str(tmp_path / "p.h5")
+    res = run(main, ["train", degraded["clean"], "-o", model, "--epochs", "2", "--hidden", "8", "--latent-dims", "2"])
+    assert res.exit_code == 0, res.output
+    m = Model.load(model)
+    assert m.spec.state_dim == 4 and m.latent_dims == 2 and m.spec.encoder_window == 5
+    assert list(m.attrs["unmeasured_dims"]) == [2, 3]
+    res = run(main, ["eval", model, degraded["clean"], "--warmup", "3", "--predictions", pred, "--reference-sample", "0"])
+    assert res.exit_code == 0, res.output
+    assert read_trajectories(pred).x.shape == read_trajectories(degraded["clean"]).x.shape

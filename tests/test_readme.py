@@ -34,6 +34,9 @@ SHRINK = {
     "-B 100 --seed 5": "-B 10 --seed 5",
     "epochs = 300": "epochs = 2",
     "--trajectories 2000": "--trajectories 8",
+    "pend_log.h5 -B 300": "pend_log.h5 -B 12",
+    "-o pend_log_model.h5 --time-limit 5m": "-o pend_log_model.h5 --epochs 2",
+    "pend_log_test.h5 -B 100": "pend_log_test.h5 -B 6",
 }
 
 #: the README's blocks that no test runs, and why

@@ -119,6 +119,20 @@ class Trajectories:
         """The state dimensions observed nowhere in the set (the model carries them as hidden states)."""
         return np.flatnonzero(~self.observed().any(axis=(0, 1, 2)))
 
+    def with_hidden_dims(self, k):
+        """The same trajectories with ``k`` more state dimensions per node, never observed (NaN):
+        room for a model's latent states (named "latent 1", ... where the others have names)."""
+        if not k:
+            return self
+        pad = lambda a: None if a is None else np.concatenate(  # noqa: E731
+            [a, np.full(np.shape(a)[:3] + (k,), np.nan, dtype=np.asarray(a).dtype)], axis=3)
+        attrs = dict(self.attrs)
+        if "state_names" in attrs:
+            attrs["state_names"] = list(attrs["state_names"]) + [f"latent {i + 1}" for i in range(k)]
+        return Trajectories(x=pad(np.asarray(self.x, dtype=np.float64)), graphs=self.graphs, dt=self.dt,
+                            system=self.system, u=self.u, graph_index=self.graph_index, attrs=attrs, params=self.params,
+                            aux=self.aux, t=self.t, truth=pad(self.truth))
+
     @classmethod
     def from_arrays(cls, x, graph, dt=None, system=None, u=None, graph_index=None, directed=False, attrs=None,
                     params=None, aux=None, t=None, truth=None, source="arrays"):

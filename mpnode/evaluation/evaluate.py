@@ -147,6 +147,8 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     substeps : None (the model's own), an int, or "auto" (module docstring).
     check_stability : run `stepsize.stability_check` after the rollout (result.stability).
     """
+    traj = model.fitted(traj)  # room for the model's latent dimensions, never observed
+    truth = None if truth is None else _with_latent(np.asarray(truth, dtype=np.float64), traj.state_dim)
     check_data(model, [traj], [source], allow_dt_mismatch=allow_dt_mismatch or not traj.regular)
     if traj.regular and not math.isclose(traj.dt, model.spec.dt, rel_tol=1e-9, abs_tol=0.0):
         model = model.with_spec(dt=float(traj.dt))
@@ -205,6 +207,12 @@ def _truth_of(traj, truth, source):
         raise InputError(source, "truth", f"has shape {truth.shape} but the data have {traj.x.shape}",
                          "the clean states of the same trajectories (the same B, T+1, N, dx)")
     return truth
+
+
+def _with_latent(truth, dx):
+    """``truth`` (..., d) with NaN columns up to dx: a model's latent dimensions have no truth."""
+    missing = dx - truth.shape[-1]
+    return truth if missing <= 0 else np.concatenate([truth, np.full(truth.shape[:-1] + (missing,), np.nan)], -1)
 
 
 def _scored(truth, traj, first, observations):

@@ -34,6 +34,8 @@ class ModelConfig:
     encoder_window : W > 0: the model estimates a trajectory's whole initial state from its first
         W observations (mpnode.model.encoder: values nobody measured, noise); 0: a rollout starts
         from the first observation as it is
+    latent_dims : K more state dimensions per node beyond the data's, never observed: room for
+        what the data do not show (the encoder estimates their start)
     """
 
     kind: str = option("mpnode", aliases=("model",))
@@ -48,6 +50,7 @@ class ModelConfig:
     substeps: int = 1
     dtype: str = "float32"
     encoder_window: int = 0
+    latent_dims: int = 0
 
     def __post_init__(self):
         _check_choice("kind", self.kind, KINDS)
@@ -55,6 +58,7 @@ class ModelConfig:
         _check_int("hidden", self.hidden, 1)
         _check_int("substeps", self.substeps, 1)
         _check_int("encoder_window", self.encoder_window, 0)
+        _check_int("latent_dims", self.latent_dims, 0)
         _check_choice("aggregation", self.aggregation, (None,) + AGGREGATIONS)
         _check_choice("linear_aggregation", self.linear_aggregation, (None,) + AGGREGATIONS)
         _check_choice("linear_target", self.linear_target, LINEAR_TARGETS)

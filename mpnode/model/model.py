@@ -80,6 +80,16 @@ class Model:
         return self.spec.kind
 
     @property
+    def latent_dims(self):
+        """The state dimensions beyond the data's (never observed); the data have state_dim - them."""
+        return int(self.attrs.get("latent_dims", 0))
+
+    def fitted(self, traj):
+        """``traj`` with room for this model's latent dimensions (mpnode.data.Trajectories.with_hidden_dims)."""
+        return traj.with_hidden_dims(self.latent_dims) if traj.state_dim + self.latent_dims == self.spec.state_dim \
+            else traj
+
+    @property
     def dtype(self):
         return self.theta.dtype
 
@@ -154,7 +164,10 @@ class Model:
         model's dtype: the first of the K observations (B, K, N, dx), NaN where not observed,
         with a model's initial-state encoder applied to all K (times (B, K), or None: every dt);
         without an encoder, the first observation with its missing values at the data's mean."""
-        obs = self.normalize_x(np.asarray(observations, dtype=np.float64))
+        obs = np.asarray(observations, dtype=np.float64)
+        if obs.shape[-1] + self.latent_dims == self.spec.state_dim:  # the data's dimensions: room for the latent ones
+            obs = np.concatenate([obs, np.full(obs.shape[:-1] + (self.latent_dims,), np.nan)], axis=-1)
+        obs = self.normalize_x(obs)
         b, k, n, dx = obs.shape
         x = to_time_major(obs)
         iv = None if times is None else np.repeat(node_intervals(times), n, axis=1)

@@ -65,6 +65,8 @@ def new_model(data, config, seed=0):
     mean_degree = data.mean_in_degree(config.self_messages) if config.uses_mean_degree else None
     model = Model.create(first.state_dim, first.control_dim, dt=first.dt, seed=seed, n_nodes=n_nodes,
                          mean_degree=mean_degree, config=config)
+    if config.latent_dims:
+        model.attrs["latent_dims"] = config.latent_dims
     x_mean, x_std, u_mean, u_std = data.normalization()
     model.x_mean, model.x_std = x_mean, x_std
     if u_mean is not None:
@@ -111,6 +113,8 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     a sweep's worker trains on copies and names the originals).
     """
     datasets = datasets or read_all(paths)
+    latent = int(canonical(options).get("latent_dims", 0) or 0)
+    datasets = [t.with_hidden_dims(latent) for t in datasets]
     options, chosen = with_recipe(options, recipe_name, datasets)
     if not resume:
         _announce(notify, chosen, f"recipe {recipe_name} for {datasets[0].system}")
@@ -137,6 +141,8 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
         raise InputError("options", sorted(fixed)[0], "cannot change when fine-tuning",
                          "only training options (and substeps); the model keeps its kind and sizes")
     model = None if resume else Model.load(model_path)
+    if model is not None:
+        datasets = [model.fitted(t) for t in datasets]
     if not resume:
         options, chosen = fill_unset(options, finetune_recipe(recipe_name, model.kind))
         _announce(notify, chosen, f"recipe {recipe_name} for fine-tuning")
