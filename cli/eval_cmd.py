@@ -224,7 +224,8 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     if predictions:
         attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report),
                  **{k: traj.attrs[k] for k in ("state_names",) if k in traj.attrs}}
-        pf = _or_why(lambda: predictions_file(result.predictions[..., :traj.state_dim], traj.graphs, traj.graph_index, traj.dt, traj.system,
+        pred = result.predictions[..., :traj.state_dim]  # a model's latent dimensions stay its own
+        pf = _or_why(lambda: predictions_file(pred, traj.graphs, traj.graph_index, traj.dt, traj.system,
                                               os.path.abspath(model_file), traj.u, attrs, traj.t), result.stability)
         write_trajectories(predictions, pf)
         if not as_json:
