@@ -85,7 +85,7 @@ def check_plot(plot):
 
 
 def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20, substeps=None,
-                        substeps_tol=None, max_substeps=None, warmup=0, truth=None):
+                        substeps_tol=None, max_substeps=None, warmup=0, truth=None, start="encoder"):
     """Evaluate, and time the reference simulator beside the model when the file names one:
     returns (EvalResult, report dict)."""
     from data_gen.reference import speed_against_reference
@@ -94,7 +94,8 @@ def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20
 
     result = evaluate(model, traj, source=source, allow_dt_mismatch=allow_dt, substeps=substeps,
                       substeps_tol=substeps_tol or stepsize.DEFAULT_TOL,
-                      max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS, warmup=warmup, truth=truth)
+                      max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS, warmup=warmup, truth=truth,
+                      start=start)
     report = {"data": source, **result.summary(), "state_names": traj.attrs.get("state_names")}
     if reference_sample > 0 and traj.regular:
         report["reference"] = speed_against_reference(model, traj, result, reference_sample)
@@ -170,6 +171,10 @@ def format_report(report, model_name):
               help="Let the model see the first K observations of each trajectory before it predicts: a "
                    "model with an initial-state encoder estimates from them what was not measured and what "
                    "noise hides; the error counts the observations after them.")
+@click.option("--start", type=click.Choice(["encoder", "fit"]), default="encoder", show_default=True,
+              help="How the warm-up gives each prediction its start: the model's initial-state estimate "
+                   "(its encoder, or the first observation), or that estimate fitted to the warm-up's "
+                   "observations through the model (a few hundred short rollouts).")
 @click.option("--truth", type=click.Path(dir_okay=False), metavar="CLEAN.h5",
               help="Score against the clean states of the same trajectories in this file (DATA noisy); "
                    "default: DATA's own clean truth if it keeps one (mpnode generate --noise), else its "
@@ -177,8 +182,8 @@ def format_report(report, model_name):
 @plot_option("truth against prediction for the first trajectories and nodes, per state dimension, and the "
              "error over time with the predictable horizon")
 @substeps_options
-def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, reference_sample, warmup, truth, plot,
-             substeps, substeps_tol, max_substeps):
+def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, reference_sample, warmup, start, truth,
+             plot, substeps, substeps_tol, max_substeps):
     """Roll MODEL out from every initial state of DATA and report error and speed.
 
     Error: normalised MSE (squared error / per-dimension variance of DATA's true
@@ -212,7 +217,7 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     traj = read_trajectories(data)
     clean = None if truth is None else read_trajectories(truth).x
     result, report = evaluate_and_report(model, traj, data, allow_dt_mismatch, reference_sample, substeps,
-                                         substeps_tol, max_substeps, warmup, clean)
+                                         substeps_tol, max_substeps, warmup, clean, start)
     report["model"] = model_file
     click.echo(json.dumps(report, indent=2, allow_nan=False) if as_json else format_report(report, model_file))
     if plot:  # before the predictions file, which refuses non-finite predictions: a blow-up gets its figure

@@ -16,7 +16,8 @@ import numpy as np
 
 from mpnode.base.errors import InputError, NumericalError
 from mpnode.data import Trajectories
-from mpnode.model import check_data
+from mpnode.model import batch_graph, check_data
+from mpnode.model.start import fit_initial_state
 
 from . import stepsize
 from .metrics import (
@@ -134,7 +135,7 @@ def with_substeps(model, substeps, x0, graphs, graph_index, u, horizon, tol, max
 
 def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=16384, substeps=None,
              substeps_tol=stepsize.DEFAULT_TOL, max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS,
-             horizon_thresholds=HORIZON_THRESHOLDS, check_stability=True, warmup=0, truth=None):
+             horizon_thresholds=HORIZON_THRESHOLDS, check_stability=True, warmup=0, truth=None, start="encoder"):
     """Roll ``model`` out on every trajectory of ``traj`` and measure error and speed (EvalResult).
 
     Predictions fall at the file's observation times.  warmup : K, the first K observations
@@ -142,6 +143,8 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     encoder; without, the first); the error counts the observations after them (steps
     max(K, 1)..T).  truth : the clean states (like traj.x) to score against, when the data are
     noisy; default the file's own truth, else its observations (what was observed only).
+    start : how the warm-up gives the start: "encoder" (the model's estimate, `Model.initial_state`)
+    or "fit" (from there, fitted to the warm-up's observations through the engine: mpnode.model.start).
     Raises InputError (naming ``source``) when dx/du (or a node model's N) differ, or a regular
     file's dt differs and is not allowed; with ``allow_dt_mismatch`` the model runs at the file's dt.
     substeps : None (the model's own), an int, or "auto" (module docstring).
@@ -157,7 +160,7 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     b, t1, n, dx = x.shape
     u = None if traj.u is None else np.nan_to_num(np.asarray(traj.u))
     times = None if traj.regular else traj.times()
-    x0 = start_states(model, traj, warmup)
+    x0 = start_states(model, traj, warmup, start)
     model, auto_report = with_substeps(model, substeps, x0, traj.graphs, traj.graph_index, u, t1 - 1,
                                        substeps_tol, max_substeps)
     seconds, pred = _timed_rollout(model, x0, traj, u, times, max_nodes)
@@ -181,12 +184,25 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
                       nmse_per_dimension(pred, score, clean).tolist(), hidden)
 
 
-def start_states(model, traj, warmup):
+def start_states(model, traj, warmup, start="encoder"):
     """(B, N, dx) where the rollouts of ``traj`` start: the model's estimate from each
-    trajectory's first max(warmup, 1) observations (mpnode.model.Model.initial_state)."""
+    trajectory's first max(warmup, 1) observations (mpnode.model.Model.initial_state), fitted
+    to them through the engine when ``start`` is "fit" (mpnode.model.start)."""
+    if start not in STARTS:
+        raise InputError("--start", "start", f"is {start!r}", " or ".join(STARTS))
     k = max(int(warmup), 1)
     times = None if traj.regular else traj.times()[:, :k]
-    return model.initial_state(np.asarray(traj.x)[:, :k], times)
+    obs = np.asarray(traj.x)[:, :k]
+    x0 = model.initial_state(obs, times)
+    if start == "fit" and k > 1:
+        u = None if traj.u is None else np.nan_to_num(np.asarray(traj.u)[:, :k - 1])
+        x0 = fit_initial_state(model, obs, batch_graph(_per_trajectory(traj.graphs, traj.graph_index), len(obs)),
+                               times, u, start=x0)
+    return x0
+
+
+#: how a warm-up gives a rollout its start
+STARTS = ("encoder", "fit")
 
 
 def _timed_rollout(model, x0, traj, u, times, max_nodes):
