@@ -294,3 +294,11 @@ def test_fitting_the_start_through_the_model_recovers_a_state_nobody_measured():
     fitted = fit_initial_state(m, obs, batch_graph(g, 4), steps=400)
     filled = m.initial_state(obs)
     assert np.abs(fitted - truth).max() < 0.1 * np.abs(filled - truth).max()
+
+
+def test_a_gap_too_long_for_the_models_step_is_refused_naming_the_file(tmp_path):
+    t = np.array([[0.0, 0.1, 0.2, 50.0]])
+    write_trajectories(tmp_path / "gap.h5", x=np.ones((1, 4, 3, 2)), t=t, graph=RING, dt=0.1, system="s")
+    Model.create(2, message_dim=2, hidden=4, dt=0.01).save(tmp_path / "m.h5")
+    res = CliRunner().invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "gap.h5"), "--reference-sample", "0"])
+    assert res.exit_code == 2 and "gap.h5: t: has a gap of 49.8" in res.output and "split the trajectory" in res.output

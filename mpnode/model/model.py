@@ -16,6 +16,7 @@ from mpnode import engine
 from mpnode.base.errors import InputError, NumericalError
 from mpnode.base.graph import Graph, block_diagonal
 from mpnode.engine import layouts
+from mpnode.engine.schedule import MAX_STEPS_PER_INTERVAL
 
 from . import encoder
 from . import file as model_file
@@ -252,6 +253,21 @@ def check_data(model, datasets, sources, allow_dt_mismatch=False):
             raise InputError(src, "u", f"has {traj.control_dim} control dimensions per node but the model has "
                              f"{s.control_dim}", f"du = {s.control_dim}")
         model.check_nodes(traj.n_nodes, src, "x")
+        _check_gaps(traj, s, src)
         if not allow_dt_mismatch and not math.isclose(traj.dt, s.dt, rel_tol=1e-9, abs_tol=0.0):
             raise InputError(src, "dt", f"is {traj.dt:g} but the model was trained with dt = {s.dt:g}",
                              f"data saved every {s.dt:g} (or pass the flag that allows another dt)")
+
+
+def _check_gaps(traj, spec, source):
+    """InputError when a gap between two observations would take the model more RK4 steps than
+    the engine allows in one interval (mpnode.engine.schedule)."""
+    if traj.regular:
+        return
+    longest = float(traj.intervals().max(initial=0.0))
+    steps = math.ceil(longest * spec.substeps / spec.dt - 1e-9)
+    if steps > MAX_STEPS_PER_INTERVAL:
+        raise InputError(source, "t", f"has a gap of {longest:g}, {steps} RK4 steps of this model's "
+                         f"dt / substeps = {spec.dt / spec.substeps:g}",
+                         f"gaps of at most {MAX_STEPS_PER_INTERVAL} of the model's steps: split the trajectory "
+                         "at the gap, or a model with a larger dt")
