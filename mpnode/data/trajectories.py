@@ -8,15 +8,16 @@ so that `import mpnode` stays light.
 """
 import math
 import numbers
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from mpnode.base.arguments import check_bool, check_mapping, check_path
 from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph, as_graph, check_csr, is_networkx
 from mpnode.base.h5 import H5_DAMAGE, one_line, plain_attr
+from mpnode.base.oserrors import file_error, refused
 
 
 @dataclass
@@ -85,6 +86,8 @@ class Trajectories:
         (``state_names``: one name per state dimension, used by the figures).
         Integer arrays become float64.  Raises InputError naming ``source`` and the field.
         """
+        directed = check_bool(directed, source, "directed")
+        attrs, params, aux = (check_mapping(v, source, k) for k, v in (("attrs", attrs), ("params", params), ("aux", aux)))
         x, u = _float_array(x, "x", source), None if u is None else _float_array(u, "u", source)
         if x.ndim != 4:
             raise InputError(source, "x", f"has shape {x.shape}",
@@ -99,7 +102,7 @@ class Trajectories:
             if graph_index.dtype.kind == "f" and np.all(graph_index == np.round(graph_index)):
                 graph_index = graph_index.astype(np.int64)
         traj = cls(x=x, graphs=graphs, dt=_plain_scalar(dt), system=system, u=u, graph_index=graph_index,
-                   attrs=dict(attrs or {}), params=dict(params or {}), aux=dict(aux or {}))
+                   attrs=attrs, params=params, aux=aux)
         return validate_trajectories(traj, source)
 
 
@@ -164,9 +167,9 @@ def validate_trajectories(traj, source):
     is_number = isinstance(dt, numbers.Real) and not isinstance(dt, (bool, np.bool_))
     if not (is_number and math.isfinite(dt) and dt > 0):
         raise InputError(source, "dt", f"is {dt!r}", "a finite number > 0")
-    if not isinstance(traj.system, str) or not traj.system.strip():
+    if not _storable_text(traj.system) or not traj.system.strip():
         raise InputError(source, "system", f"is {traj.system!r}",
-                         "a non-empty string naming the system, e.g. 'lorenz'")
+                         "a non-empty string naming the system, e.g. 'lorenz' (no NUL character)")
 
     x = np.asarray(traj.x)
     if x.ndim != 4:
@@ -218,13 +221,24 @@ def validate_trajectories(traj, source):
     return traj
 
 
+def _storable_text(text):
+    """Whether ``text`` is a string HDF5 can store: UTF-8, without NUL characters."""
+    if not isinstance(text, str) or "\x00" in text:
+        return False
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:  # an unpaired surrogate
+        return False
+    return True
+
+
 def _check_names(names, key, size, source):
     """Optional attribute ``key``: one non-empty string per state (control) dimension."""
     if names is None:
         return
     names = [names] if isinstance(names, str) else names
     ok = isinstance(names, (list, tuple, np.ndarray)) and len(names) == size \
-        and all(isinstance(n, str) and n.strip() for n in names)
+        and all(_storable_text(n) and n.strip() for n in names)
     if not ok:
         raise InputError(source, key, f"is {names!r}", f"a list of {size} non-empty strings, one per dimension")
 
@@ -249,12 +263,14 @@ def read_trajectories(path):
     """
     import h5py
 
-    source = os.fspath(path)
+    source = check_path(path, "read_trajectories")
     try:
         f = h5py.File(source, "r")
     except FileNotFoundError:
         raise InputError(source, "file", "does not exist", "an existing trajectory file") from None
     except H5_DAMAGE as e:
+        if refused(e):
+            raise file_error(e, source, "read") from None
         raise InputError(source, "file", f"cannot be opened as HDF5 ({one_line(e)})",
                          "an HDF5 trajectory file (not truncated, not another format)") from None
     try:
@@ -394,7 +410,7 @@ def write_trajectories(path, traj=None, *, x=None, u=None, graph=None, graph_ind
     """
     import h5py
 
-    path = os.fspath(path)
+    path = check_path(path, "write_trajectories")
     arrays = dict(x=x, u=u, graph=graph, graph_index=graph_index, dt=dt, system=system, attrs=attrs,
                   params=params, aux=aux)
     if isinstance(traj, Trajectories):
@@ -427,6 +443,8 @@ def write_trajectories(path, traj=None, *, x=None, u=None, graph=None, graph_ind
         extras += [(f, f"{group}/{name}", value) for group in ("params", "aux")
                    for name, value in getattr(traj, group).items()]
         for target, key, value in extras:
+            if not _storable_text(key):
+                raise InputError(path, repr(key), "is not a name HDF5 can store", "a UTF-8 name without NUL")
             try:
                 target[key] = value
             except (TypeError, ValueError) as e:

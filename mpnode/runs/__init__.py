@@ -4,4 +4,4 @@ process pool or Dask).
 
 Owns: `run`, `sweep`, `executors`.  May import: mpnode.training and everything below it.
 """
-from .run import finetune, parse_duration, read_all, train  # noqa: F401
+from .run import finetune, parse_duration, read_all, require_numba, train  # noqa: F401
