@@ -42,8 +42,11 @@ def files(folder):
 
 
 def _namespaces():
+    """Whether a tmpfs and a read-only bind mount can be made in a user namespace here."""
+    probe = ('d=$(mktemp -d) && mount -t tmpfs -o size=64k tmpfs "$d" && mount --bind "$d" "$d" '
+             '&& mount -o remount,bind,ro "$d" && umount "$d" && umount "$d" && rmdir "$d"')
     try:
-        return subprocess.run(["unshare", "-rm", "true"], capture_output=True, timeout=30).returncode == 0
+        return subprocess.run(["unshare", "-rm", "sh", "-c", probe], capture_output=True, timeout=30).returncode == 0
     except (OSError, subprocess.SubprocessError):
         return False
 
