@@ -142,15 +142,18 @@ def reference_timing(traj, sample, target):
     family, setting, seconds_per_trajectory, nmse)}; when nothing reached ``target``, the
     chosen setting is the most accurate one tried.  None when the file does not name a
     reference system this package can rebuild from its own parameters (predictions,
-    controlled systems, foreign files).
+    controlled systems, foreign files), or its dt is beyond what the system's integrator
+    can finish (data_gen.systems.System.check_dt).
     """
     if traj.system not in SYSTEMS or "predicted_by" in traj.attrs or traj.u is not None:
         return None
-    if traj.state_dim != SYSTEMS[traj.system].state_dim:
+    system = SYSTEMS[traj.system]
+    if traj.state_dim != system.state_dim:
         return None
     try:
+        system.check_dt({k: traj.attrs[k] for k in system.defaults if k in traj.attrs}, traj.dt, "data")
         ref = _Sample(traj, min(sample, traj.n_trajectories))
-    except (KeyError, ValueError, TypeError):
+    except (KeyError, ValueError, TypeError):  # InputError (a dt the integrator would never finish) is a ValueError
         return None
     deadline = time.perf_counter() + SEARCH_SECONDS
     tried = [row for family in ref.settings() for row in _search(family, ref, target, deadline)]
