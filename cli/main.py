@@ -12,11 +12,8 @@ import click
 
 from mpnode.base.errors import InputError, NumericalError
 
-#: the exit statuses every command shares (each command's --help lists its own)
-EXIT_STATUS = {"ok": 0, "input": 2, "numerical": 3, "system": 4, "interrupted": 130}
-#: the line of each command's --help about exit status 4
-SYSTEM_REFUSED = ("4 the system refused (a file could not be read or written: permission, full disk, read-only "
-                  "folder, file in use; or memory ran out, or numba cannot be imported)")
+#: the exit statuses of the failures every command shares (each command's --help lists its own)
+EXIT_STATUS = {"input": 2, "numerical": 3, "system": 4}
 
 
 class _Group(click.Group):
