@@ -6,7 +6,7 @@ import click
 
 from mpnode.base.errors import InputError, NumericalError
 
-from .main import main
+from .main import claim_outputs, main
 
 
 class SubstepsType(click.ParamType):
@@ -144,17 +144,32 @@ def format_report(report, model_name):
                  f"({r['node_steps_per_second']:.3g} node-steps/s)")
     ref = r.get("reference")
     if ref:
-        lines.append(f"  reference {ref['system']} ({ref['integrator']}), timed on {ref['sample']} trajectories: "
-                     f"{ref['reference_seconds_per_trajectory'] * 1e3:.3g} ms per trajectory "
-                     f"(its nmse against the file: {ref['reference_nmse_vs_file']:.2g})")
-        lines.append(f"  speed against error: learned {ref['learned_seconds_per_trajectory'] * 1e3:.3g} ms per "
-                     f"trajectory (same {ref['sample']} as one batch; "
-                     f"{ref['learned_seconds_per_trajectory_full_batch'] * 1e3:.3g} ms in the full batch) vs "
-                     f"reference {ref['reference_seconds_per_trajectory'] * 1e3:.3g} ms: "
-                     f"{ref['speedup']:.3g}x faster at normalised MSE {_g(r['nmse'])}")
+        lines += format_reference(ref)
     elif "reference" in r:
         lines.append("  reference: the file names no system data_gen can rebuild; not timed")
     return "\n".join(lines)
+
+
+def format_reference(ref):
+    """The reference's lines of the report: which setting reaches the model's error at the least
+    cost (data_gen.reference), what else was tried, and which of the two is faster."""
+    def ms(seconds):
+        return f"{seconds * 1e3:.3g} ms"
+
+    k = ref["sample"]
+    which = ("the cheapest setting that reaches" if ref["reached"]
+             else "no setting tried reaches; the most accurate of them, against")
+    tried = "; ".join(f"{t['setting']}: nMSE {_g(t['nmse'])} in {ms(t['seconds_per_trajectory'])}" for t in ref["tried"])
+    speed = ref["speedup"]
+    verdict = (f"the learned model is {speed:.3g}x faster" if speed >= 1 else
+               f"the learned model is {1 / speed:.3g}x SLOWER: at this error, integrating the true equations is cheaper")
+    chosen = (f"  reference: the true {ref['system']} equations, {which} the model's normalised MSE on the same {k} "
+              f"trajectories ({_g(ref['target_nmse'])}): {ref['integrator']}, "
+              f"{ms(ref['reference_seconds_per_trajectory'])} per trajectory (nMSE {_g(ref['reference_nmse_vs_file'])})")
+    speed_line = (f"  speed against error: learned {ms(ref['learned_seconds_per_trajectory'])} per trajectory (the same "
+                  f"{k} as one batch; {ms(ref['learned_seconds_per_trajectory_full_batch'])} in the full batch) vs "
+                  f"reference {ms(ref['reference_seconds_per_trajectory'])}: {verdict}")
+    return [chosen, f"    tried, each family cheapest first: {tried}", speed_line]
 
 
 @main.command("eval")
@@ -191,9 +206,15 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     step where a prediction became non-finite or left ten times the data's range.
     Predictable horizon: per trajectory the first step whose normalised MSE exceeds
     0.1 and 1.0, reported as the median over trajectories (in steps and time).
-    Speed: rollout wall time and node-steps per second; when DATA names a reference
-    system that data_gen can rebuild from the file's parameters, the reference
-    simulator is timed on a sample of the same initial states (speed against error).
+    Speed: rollout wall time and node-steps per second.  Speed against error, when DATA
+    names a reference system that data_gen can rebuild from the file's parameters: on
+    the first --reference-sample initial states, the true equations at the cheapest
+    setting whose nMSE against DATA is no larger than the model's -- the file's scipy
+    integrator at looser tolerances (1e-3, 1e-4, ... down to the file's own), or classic
+    RK4 with 1, 2, 4, ... steps per dt over the sampled trajectories as one batch,
+    whichever is faster -- timed beside the learned rollout of the same states; the
+    report says which setting, what was tried, and whether the model is faster or slower.
+    A MODEL trained on another system than DATA's is evaluated, with a warning.
 
     Substeps: --substeps auto picks the RK4 substeps per dt by step doubling (the
     difference of the rollouts with s and 2s substeps estimates the error of s;
@@ -202,23 +223,31 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     suggests --substeps N (--json: step_too_large, suggested_substeps).
 
     Exit status: 0 (also when the step is too large: see the report); 2 bad input
-    (missing file, dx/du or dt mismatch); 3 predictions non-finite and --predictions
-    given (nothing written).
+    (missing file, dx/du or dt mismatch, an output being written by another run); 3
+    predictions non-finite and --predictions given (nothing written); 4 the system
+    refused (an output could not be written: permission, full disk, read-only folder;
+    nothing is left behind).
     """
     from mpnode.base.atomic import check_outputs
     from mpnode.data import read_trajectories, write_trajectories
     from mpnode.evaluation.evaluate import predictions_file, substeps_attrs
     from mpnode.model import Model
+    from mpnode.model.provenance import system_mismatch
 
     check_plot(plot)
     outputs = {k: v for k, v in (("--predictions", predictions), ("--plot", plot)) if v}
     check_outputs(outputs, [model_file, data] + ([truth] if truth else []))
+    claim_outputs(outputs)
     model = Model.load(model_file)
     traj = read_trajectories(data)
     clean = None if truth is None else read_trajectories(truth).x
+    warning = system_mismatch(model, traj.system, data)
+    if warning:
+        click.echo(f"warning: {warning}", err=True)
     result, report = evaluate_and_report(model, traj, data, allow_dt_mismatch, reference_sample, substeps,
                                          substeps_tol, max_substeps, warmup, clean, start)
     report["model"] = model_file
+    report["warnings"] = [warning] if warning else []
     click.echo(json.dumps(report, indent=2, allow_nan=False) if as_json else format_report(report, model_file))
     if plot:  # before the predictions file, which refuses non-finite predictions: a blow-up gets its figure
         from mpnode.plot import plot_eval
@@ -271,23 +300,35 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     non-finite or leaves [mean - 20 std, mean + 20 std] of the training data (the
     model's normalisation) widened to hold the initial states; if more substeps
     avoid that, the RK4 step was too large and a --substeps N is suggested.
+
+    A MODEL trained on another system than SCENE's is rolled out, with a warning.
+    Exit status: 0 written; 2 bad input (also: more trajectories or steps than memory
+    holds, refused before any work; OUTPUT being written by another run); 3 predictions
+    non-finite (nothing written); 4 the system refused (OUTPUT could not be written).
     """
     from dataclasses import replace
 
     from data_gen import initial_states, load_scene
+    from data_gen.scenes import check_scene
     from data_gen.systems import get_system
     from mpnode.base.atomic import check_outputs
     from mpnode.data import write_trajectories
     from mpnode.evaluation.evaluate import predictions_file, simulate, substeps_attrs
     from mpnode.model import Model
+    from mpnode.model.provenance import system_mismatch
 
     check_plot(plot)
     check_outputs({"--output": output, **({"--plot": plot} if plot else {})}, [model_file, scene])
+    claim_outputs({"--output": output, "--plot": plot})
     model = Model.load(model_file)
     s = load_scene(scene)
     s = replace(s, **{k: v for k, v in dict(trajectories=trajectories, horizon=horizon, seed=seed).items()
                       if v is not None})
+    check_scene(s, scene)  # the options too (the memory B and T need), before any work
     system = get_system(s.system)
+    warning = system_mismatch(model, s.system, scene)
+    if warning:
+        click.echo(f"warning: {warning}", err=True)
     if system.state_dim != model.spec.state_dim:
         raise InputError(scene, "system", f"{s.system} has {system.state_dim} state dimensions per node but the "
                          f"model has {model.spec.state_dim}", "a scene of the system the model learned")

@@ -5,7 +5,7 @@ from dataclasses import replace
 
 import click
 
-from .main import main, scheduler_option
+from .main import claim_outputs, main, scheduler_option
 
 
 @main.command("generate")
@@ -42,8 +42,10 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler,
     non-finite state, a pendulum reaching |cos theta| < 1e-6) is re-drawn from a
     fresh initial state; the count is stored as the attribute `redrawn`.
 
-    Exit status: 0 written; 2 bad scene, option or output path; 3 trajectories
-    kept failing (nothing written).
+    Exit status: 0 written; 2 bad scene, option or output path (also: a dt too long for
+    the system, more trajectories than memory holds, FILE being written by another run);
+    3 trajectories kept failing (nothing written); 4 the system refused (FILE could not be
+    written: permission, full disk, read-only folder; nothing is left behind).
 
     With --scheduler the trajectories are integrated on Dask in chunks; the arrays come
     back here and only this process writes FILE: the file is the same, bit for bit.
@@ -51,6 +53,7 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler,
     from data_gen import generate as run
     from data_gen import load_scene
     from data_gen.degrade import Degradation, degrade, fine_scene
+    from data_gen.scenes import check_scene
     from mpnode.base.atomic import check_outputs
     from mpnode.data import write_trajectories
 
@@ -58,8 +61,10 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler,
     s = load_scene(scene)
     overrides = dict(trajectories=trajectories, horizon=horizon, dt=dt, seed=seed)
     s = replace(s, **{k: v for k, v in overrides.items() if v is not None})
-    start = time.perf_counter()
     degradation = Degradation(jitter, drop, noise, _dims(hide, s), s.seed)
+    check_scene(fine_scene(s, degradation), scene)  # the options too (dt, the memory B and T need), before any work
+    claim_outputs({"--output": output})
+    start = time.perf_counter()
     with click.progressbar(length=s.trajectories, label=s.name, file=sys.stderr) as bar:
         traj = run(fine_scene(s, degradation), workers=workers, progress=bar.update, scheduler=scheduler)
     if degradation.any:

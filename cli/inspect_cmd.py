@@ -19,7 +19,8 @@ def inspect(file, as_json):
     (mpnode, l2s or node), sizes, aggregation, integration settings, parameter count
     and the attributes training recorded (data, recipe, epoch, validation loss).
     A file that breaks a rule is reported as "Error: FILE: FIELD: problem (expected ...)"
-    with exit status 2.
+    with exit status 2; a file the system will not let us read (permission, an I/O
+    error) with exit status 4.
     """
     from mpnode.base.h5 import file_format
     from mpnode.data import read_trajectories, summarize

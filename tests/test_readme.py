@@ -26,7 +26,7 @@ SHRINK = {
     "--trajectories 1000": "--trajectories 20",
     "--time-limit 10m": "--epochs 2",
     "--trajectories 50 --seed 1": "--trajectories 10 --seed 1",
-    "--time-limit 5m": "--epochs 2",
+    "-o l10_model.h5 --time-limit 5m": "-o l10_model.h5 --epochs 2",
     "--trajectories 200 --seed 2": "--trajectories 10 --seed 2",
     '"epochs": 300': '"epochs": 2',
     "--epochs 100": "--epochs 5",

@@ -6,16 +6,17 @@ and the clean ``truth`` of degraded data.  The writer writes version 1 whenever 
 need none of that, so older readers keep reading what they can.  h5py is imported inside
 the functions so that `import mpnode` stays light.
 """
-import os
 
 import numpy as np
 
+from mpnode.base.arguments import check_path
 from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph
 from mpnode.base.h5 import H5_DAMAGE, one_line, plain_attr
+from mpnode.base.oserrors import file_error, refused
 
-from .rules import RESERVED_ATTRS, needs_version_2, validate_trajectories
+from .rules import RESERVED_ATTRS, needs_version_2, storable_text, validate_trajectories
 from .trajectories import Trajectories
 
 FORMAT_NAME = "mpnode.trajectories"
@@ -35,12 +36,14 @@ def read_trajectories(path):
     """
     import h5py
 
-    source = os.fspath(path)
+    source = check_path(path, "read_trajectories")
     try:
         f = h5py.File(source, "r")
     except FileNotFoundError:
         raise InputError(source, "file", "does not exist", "an existing trajectory file") from None
     except H5_DAMAGE as e:
+        if refused(e):
+            raise file_error(e, source, "read") from None
         raise InputError(source, "file", f"cannot be opened as HDF5 ({one_line(e)})",
                          "an HDF5 trajectory file (not truncated, not another format)") from None
     try:
@@ -189,7 +192,7 @@ def write_trajectories(path, traj=None, *, x=None, u=None, graph=None, graph_ind
     """
     import h5py
 
-    path = os.fspath(path)
+    path = check_path(path, "write_trajectories")
     traj = _as_trajectories(path, traj, dict(x=x, u=u, graph=graph, graph_index=graph_index, dt=dt, system=system,
                                              attrs=attrs, params=params, aux=aux, t=t, truth=truth), directed)
     version = FORMAT_VERSION if needs_version_2(traj) else 1
@@ -235,6 +238,8 @@ def _write_extras(path, f, traj):
     extras += [(f, f"{group}/{name}", value) for group in ("params", "aux")
                for name, value in getattr(traj, group).items()]
     for target, key, value in extras:
+        if not storable_text(key):
+            raise InputError(path, repr(key), "is not a name HDF5 can store", "a UTF-8 name without NUL")
         try:
             target[key] = value
         except (TypeError, ValueError) as e:

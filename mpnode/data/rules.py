@@ -63,9 +63,9 @@ def _check_dt_and_system(traj, source):
     is_number = isinstance(dt, numbers.Real) and not isinstance(dt, (bool, np.bool_))
     if not (is_number and math.isfinite(dt) and dt > 0):
         raise InputError(source, "dt", f"is {dt!r}", "a finite number > 0")
-    if not isinstance(traj.system, str) or not traj.system.strip():
+    if not storable_text(traj.system) or not traj.system.strip():
         raise InputError(source, "system", f"is {traj.system!r}",
-                         "a non-empty string naming the system, e.g. 'lorenz'")
+                         "a non-empty string naming the system, e.g. 'lorenz' (no NUL character)")
 
 
 def _check_times(traj, shape, source):
@@ -156,13 +156,24 @@ def _inside(a, inside):
     return np.where(inside[:, :, None, None], a, a.dtype.type(0))
 
 
+def storable_text(text):
+    """Whether ``text`` is a string HDF5 can store: UTF-8, without NUL characters."""
+    if not isinstance(text, str) or "\x00" in text:
+        return False
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:  # an unpaired surrogate
+        return False
+    return True
+
+
 def _check_names(names, key, size, source):
     """Optional attribute ``key``: one non-empty string per state (control) dimension."""
     if names is None:
         return
     names = [names] if isinstance(names, str) else names
     ok = isinstance(names, (list, tuple, np.ndarray)) and len(names) == size \
-        and all(isinstance(n, str) and n.strip() for n in names)
+        and all(storable_text(n) and n.strip() for n in names)
     if not ok:
         raise InputError(source, key, f"is {names!r}", f"a list of {size} non-empty strings, one per dimension")
 

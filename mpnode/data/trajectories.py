@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mpnode.base.arguments import check_bool, check_mapping
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph, as_graph, is_networkx
 from mpnode.base.h5 import one_line
@@ -150,6 +151,8 @@ class Trajectories:
         root attributes (``state_names``: one name per state dimension, used by the figures).
         Integer arrays become float64.  Raises InputError naming ``source`` and the field.
         """
+        directed = check_bool(directed, source, "directed")
+        attrs, params, aux = (check_mapping(v, source, k) for k, v in (("attrs", attrs), ("params", params), ("aux", aux)))
         x, t = _padded(x, t, source)
         x, u = _float_array(x, "x", source), None if u is None else _float_array(u, "u", source)
         if x.ndim != 4:
@@ -157,9 +160,7 @@ class Trajectories:
                              "a 4-D array [B, T+1, N, dx] (one trajectory: x[None])")
         t = _times(t, x.shape[:2], source)
         specs, field_of = _graph_specs(graph, source)
-        if not isinstance(directed, (bool, np.bool_)):
-            raise InputError(source, "directed", f"is {directed!r}", "True or False")
-        graphs = [as_graph(g, x.shape[2], bool(directed), source, field_of(k)) for k, g in enumerate(specs)]
+        graphs = [as_graph(g, x.shape[2], directed, source, field_of(k)) for k, g in enumerate(specs)]
         if graph_index is None and len(graphs) > 1:
             raise InputError(source, "graph_index", f"is missing, but there are {len(graphs)} graphs",
                              f"an integer array of shape ({x.shape[0]},) naming the graph of each trajectory")
@@ -168,8 +169,8 @@ class Trajectories:
             if graph_index.dtype.kind == "f" and np.all(graph_index == np.round(graph_index)):
                 graph_index = graph_index.astype(np.int64)
         traj = cls(x=x, graphs=graphs, dt=_plain_scalar(dt) if dt is not None else _median_interval(t),
-                   system=system, u=u, graph_index=graph_index, attrs=dict(attrs or {}), params=dict(params or {}),
-                   aux=dict(aux or {}), t=t, truth=None if truth is None else _float_array(truth, "truth", source))
+                   system=system, u=u, graph_index=graph_index, attrs=attrs, params=params, aux=aux, t=t,
+                   truth=None if truth is None else _float_array(truth, "truth", source))
         return validate_trajectories(traj, source)
 
 

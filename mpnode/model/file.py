@@ -9,6 +9,7 @@ import numpy as np
 from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
 from mpnode.base.h5 import H5_DAMAGE, plain_attr
+from mpnode.base.oserrors import file_error, refused
 from mpnode.engine import layouts
 from mpnode.engine.spec import AGGREGATIONS, KINDS, LINEAR_TARGETS, FieldSpec, default_aggregation
 
@@ -127,6 +128,8 @@ def read_model(path):
     except FileNotFoundError:
         raise InputError(path, "file", "does not exist", "a model file written by `mpnode train`") from None
     except H5_DAMAGE as e:
+        if refused(e):
+            raise file_error(e, path, "read") from None
         raise InputError(path, "file", f"is not a readable HDF5 file ({e})", "an mpnode model file") from None
     try:
         with f:

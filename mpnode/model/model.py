@@ -13,6 +13,7 @@ from dataclasses import replace
 import numpy as np
 
 from mpnode import engine
+from mpnode.base.arguments import check_int
 from mpnode.base.errors import InputError, NumericalError
 from mpnode.base.graph import Graph, block_diagonal
 from mpnode.engine import layouts
@@ -61,6 +62,7 @@ class Model:
         """
         config = configured(options, config)
         spec = config.spec(state_dim, control_dim, dt, n_nodes, mean_degree)
+        seed = check_int(seed, "Model.create", "seed", 0)
         return cls(layouts.glorot_init(spec, seed=seed, dtype=np.dtype(config.dtype)), spec, attrs={"seed": seed})
 
     @classmethod
@@ -256,7 +258,8 @@ def check_data(model, datasets, sources, allow_dt_mismatch=False):
         _check_gaps(traj, s, src)
         if not allow_dt_mismatch and not math.isclose(traj.dt, s.dt, rel_tol=1e-9, abs_tol=0.0):
             raise InputError(src, "dt", f"is {traj.dt:g} but the model was trained with dt = {s.dt:g}",
-                             f"data saved every {s.dt:g} (or pass the flag that allows another dt)")
+                             f"data saved every {s.dt:g}; or, to evaluate the model at the file's dt, "
+                             "`mpnode eval --allow-dt-mismatch` (allow_dt_mismatch=True in Python)")
 
 
 def _check_gaps(traj, spec, source):

@@ -25,6 +25,8 @@ from mpnode.base.errors import InputError
 from mpnode.model import batch_graph
 from mpnode.model.renormalise import renormalised
 
+from .learnable import check_learnable
+
 
 def check_same_kind(datasets, sources):
     """Several training files must agree on dx, du and dt (graphs and N may differ)."""
@@ -201,6 +203,7 @@ class TrainingData:
         self.split_settings = split_settings(config)
         self.split = make_split(self.datasets, config)
         self.fingerprint = fingerprint(self.datasets)
+        check_learnable(self, config)
 
     def training(self, field):
         """Every file's training trajectories of ``field`` ("x" or "u"), NaN where not observed."""

@@ -32,7 +32,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mpnode import engine
+from mpnode.base.atomic import atomic_paths
 from mpnode.base.errors import InputError
+from mpnode.base.oserrors import FileSystemError, file_error
 from mpnode.engine import layouts
 from mpnode.evaluation import metrics
 from mpnode.model import check_data, encoder
@@ -294,15 +296,20 @@ def fit(model, data, config=None, output=None, *, sources=None, resume=False, pr
                f"{state.best_epoch}, learning rate {state.opt.lr:g})")
     else:
         history = log.start(first_record=first_epoch(state, validate))
-        save_best(state, output, attrs)
-        if progress:
-            progress(history[0])
-    loop = _Loop(state, Curriculum(config, train_parts, notify), validate, log, output, attrs, progress, notify)
+    loop = _Loop(state, Curriculum(config, train_parts, notify), validate, log, output, attrs, progress, notify,
+                 resume)
     try:
+        if not resume:
+            loop.save(force=True)  # epoch 0: the model and the checkpoint, so that they always agree
+            loop.last_save = -math.inf  # and the first epoch's at once: a run killed early resumes from it
+            if progress:
+                progress(history[0])
         status, message = loop.run(history)
+        loop.save(force=True)  # the best model, and the last finished epoch for resume
+    except FileSystemError as e:
+        raise loop.stopped(e) from None
     finally:
         log.close()
-    loop.save(force=True)  # the best model, and the last finished epoch for resume
     if status == "completed" and resume and loop.epochs_run == 0:
         message = f"nothing to do: the run already has {state.epoch} epochs (raise --epochs to continue)"
     return TrainResult(state.best_model(**attrs, epoch=state.best_epoch, val_loss=state.best_val), status, message,
@@ -364,28 +371,47 @@ def save_best(state, output, attrs):
 class _Loop:
     """The epochs of `fit`: run, validate, log, save, until the budget or a stop."""
 
-    def __init__(self, state, curriculum, validate, log, output, attrs, progress, notify):
+    def __init__(self, state, curriculum, validate, log, output, attrs, progress, notify, resumed):
         self.state, self.curriculum, self.validate, self.log = state, curriculum, validate, log
         self.output, self.attrs, self.progress, self.notify = output, attrs, progress, notify
         self.t_start, self.elapsed_before = time.perf_counter(), state.elapsed
         self.snap = state.snapshot()
         self.epochs_run = 0
-        self.last_save, self.saved_best = -math.inf, state.best_epoch
+        # what is on disk: a resumed run's checkpoint and model; nothing yet of a new run
+        self.saved_epoch = state.epoch if resumed else None
+        self.last_save, self.saved_best = -math.inf, state.best_epoch if resumed else None
 
     def elapsed(self):
         return self.elapsed_before + time.perf_counter() - self.t_start
 
     def save(self, force=False):
-        """The best model (when it changed) and the checkpoint, at most every checkpoint_seconds
-        unless forced: writing both after every improving epoch costs a small run a large share of each epoch."""
+        """The checkpoint, and the best model with it when that changed, at most every
+        checkpoint_seconds unless forced: writing both after every improving epoch costs a small
+        run a large share of each epoch.  The two are written as a pair (mpnode.base.atomic):
+        a failure (a full disk) leaves the previous pair, which agree."""
         now = time.perf_counter()
         if self.output is None or not (force or now - self.last_save >= self.state.config.checkpoint_seconds):
             return
-        if self.state.best_epoch != self.saved_best:
-            save_best(self.state, self.output, self.attrs)
+        checkpoint = state_path(self.output)
+        if self.state.best_epoch == self.saved_best:
+            TrainState.save(checkpoint, self.snap)
+        else:
+            with atomic_paths(self.output, checkpoint) as (model_tmp, checkpoint_tmp):
+                save_best(self.state, model_tmp, self.attrs)
+                TrainState.write(checkpoint_tmp, self.snap)
             self.saved_best = self.state.best_epoch
-        TrainState.save(state_path(self.output), self.snap)
-        self.last_save = now
+        self.last_save, self.saved_epoch = now, int(self.snap["epoch"])
+
+    def stopped(self, error):
+        """``error`` (a file that could not be written) saying where the run stopped and what is on disk."""
+        if self.saved_epoch is None:
+            left = "Training stopped before anything was saved"
+            self.log.remove()
+        else:
+            left = (f"Training stopped after epoch {self.state.epoch}; {self.output} and its checkpoint "
+                    f"{state_path(self.output)} are those of epoch {self.saved_epoch}, written together: once the "
+                    "file can be written, continue with the same command plus --resume")
+        return file_error(error, error.filename, error.doing, left=left)
 
     def run(self, history):
         """Returns (status, message): completed, time_limit, diverged or interrupted."""
