@@ -8,7 +8,7 @@ import click
 
 from mpnode.base.errors import InputError
 
-from .main import main, scheduler_option
+from .main import claim_outputs, main, scheduler_option
 
 
 @main.command("generate")
@@ -26,8 +26,17 @@ from .main import main, scheduler_option
 @click.option("--workers", type=click.IntRange(min=1), default=2, show_default=True,
               help="Processes integrating trajectories (local pool, or --scheduler local); the data do not depend "
                    "on it.")
+@click.option("--jitter", type=click.FloatRange(0, 0.9), default=0.0, metavar="F",
+              help="Data as they come: each observation's time moves by up to F/2 dt either way (the scene is "
+                   "integrated on a grid 20 times finer; needs a system without controls).")
+@click.option("--drop", type=click.FloatRange(0, 0.95), default=0.0, metavar="P",
+              help="Data as they come: the fraction P of the values goes missing (NaN), each on its own.")
+@click.option("--noise", type=click.FloatRange(0, 10), default=0.0, metavar="REL",
+              help="Data as they come: Gaussian measurement noise, its std REL times each dimension's std.")
+@click.option("--hide", metavar="DIMS", default="",
+              help="Data as they come: state dimensions nobody measures (indices or state names, comma-separated).")
 @scheduler_option
-def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler):
+def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler, jitter, drop, noise, hide):
     """Integrate the reference system of SCENE and write the trajectories to FILE.
 
     SCENE is a built-in name (list them with `mpnode scenes`) or a path to a
@@ -41,13 +50,17 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler)
     non-finite state, a pendulum reaching |cos theta| < 1e-6) is re-drawn from a
     fresh initial state; the count is stored as the attribute `redrawn`.
 
-    Exit status: 0 written; 2 bad scene, option or output path; 3 trajectories
-    kept failing (nothing written).
+    Exit status: 0 written; 2 bad scene, option or output path (also: a dt too long for
+    the system, more trajectories than memory holds, FILE being written by another run);
+    3 trajectories kept failing (nothing written); 4 the system refused (FILE could not be
+    written: permission, full disk, read-only folder; nothing is left behind).
 
     With --scheduler the trajectories are integrated on Dask in chunks; the arrays come
     back here and only this process writes FILE: the file is the same, bit for bit.
     """
     from data_gen import SETS, load_scene
+    from data_gen.degrade import fine_scene
+    from data_gen.scenes import check_scene
     from mpnode.base.atomic import check_outputs
     from mpnode.data import write_trajectories
 
@@ -61,20 +74,35 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler)
         overrides = dict(trajectories=trajectories, horizon=horizon, dt=dt, seed=seed)
         scenes = [replace(load_scene(scene), **{k: v for k, v in overrides.items() if v is not None})]
         outputs = [output]
-    check_outputs({f"--output ({s.name})": out for s, out in zip(scenes, outputs)}, [scene])
-    made = [_generate(s, workers, scheduler) for s in scenes]  # all made before any is written
+    flags = {f"--output ({s.name})" if len(scenes) > 1 else "--output": out for s, out in zip(scenes, outputs)}
+    check_outputs(flags, [scene])
+    degradations = [_degradation(s, jitter, drop, noise, hide) for s in scenes]
+    for s, d in zip(scenes, degradations):
+        check_scene(fine_scene(s, d), scene)  # the options too (dt, the memory B and T need), before any work
+    claim_outputs(flags)
+    made = [_generate(s, d, workers, scheduler) for s, d in zip(scenes, degradations)]  # all before any is written
     for out, (traj, line) in zip(outputs, made):
         write_trajectories(out, traj)
         click.echo(f"wrote {out}: {line}")
 
 
-def _generate(s, workers, scheduler):
-    """(the trajectories of scene ``s``, the line that describes them)."""
+def _degradation(s, jitter, drop, noise, hide):
+    """The Degradation the data-as-they-come options ask of scene ``s``."""
+    from data_gen.degrade import Degradation
+
+    return Degradation(jitter, drop, noise, _dims(hide, s), s.seed)
+
+
+def _generate(s, degradation, workers, scheduler):
+    """(the trajectories of scene ``s``, degraded as asked, and the line that describes them)."""
     from data_gen import generate as run
+    from data_gen.degrade import degrade, fine_scene
 
     start = time.perf_counter()
     with click.progressbar(length=s.trajectories, label=s.name, file=sys.stderr) as bar:
-        traj = run(s, workers=workers, progress=bar.update, scheduler=scheduler)
+        traj = run(fine_scene(s, degradation), workers=workers, progress=bar.update, scheduler=scheduler)
+    if degradation.any:
+        traj = degrade(traj, degradation, s.dt)
     return traj, (f"{s.name}, B={traj.n_trajectories}, T={traj.horizon}, N={traj.n_nodes}, dx={traj.state_dim}, "
                   f"{len(traj.graphs)} graph(s), seed {s.seed}, {traj.attrs['redrawn']} re-drawn, "
                   f"{time.perf_counter() - start:.1f} s")
@@ -88,6 +116,23 @@ def set_paths(output, scenes):
         return [os.path.join(output, f"{s.name}.h5") for s in scenes]
     prefix = output[:-3] if output.endswith(".h5") else output
     return [f"{prefix}_{s.name}.h5" for s in scenes]
+
+
+def _dims(hide, scene):
+    """--hide's dimensions as indices (names are the system's state names)."""
+    from data_gen.systems import get_system
+
+    names = list(get_system(scene.system).state_names or [])
+    out = []
+    for item in (h.strip() for h in hide.split(",") if h.strip()):
+        if item.isdigit():
+            out.append(int(item))
+        elif item in names:
+            out.append(names.index(item))
+        else:
+            raise InputError("--hide", item, "is neither a dimension index nor a state name",
+                             f"indices 0..{len(names) - 1 if names else 'dx-1'}" + (f" or {', '.join(names)}" if names else ""))
+    return tuple(out)
 
 
 @main.command("scenes")
