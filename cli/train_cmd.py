@@ -404,7 +404,7 @@ def _evaluate_on_fresh(scene, model, output, seed):
               help="Fit the normalisation on the new training split, or keep the model's.  Refitting changes the "
                    "weights with it so that the model starts from the same predictions, and the loss weighs each "
                    "state dimension by the new data's spread (as `mpnode eval` does).  Default: the recipe's "
-                   "(auto: refit; paper: keep).")
+                   "(auto: refit for the quadrotor swarm, keep otherwise; paper: keep).")
 @recipe_option("the paper's training settings: plateau schedule, batch 128")
 @training_options
 def finetune_cmd(model_file, data, refit_norm, recipe, **o):

@@ -167,7 +167,7 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=None, recipe
     if model is not None:
         datasets = [model.fitted(t) for t in datasets]
     if not resume:
-        options, chosen = fill_unset(options, finetune_recipe(recipe_name, model.kind))
+        options, chosen = fill_unset(options, finetune_recipe(recipe_name, model.kind, datasets[0].system))
         _announce(notify, chosen, f"recipe {recipe_name} for fine-tuning")
         warning = system_mismatch(model, datasets[0].system, (names or paths)[0])
         if warning and notify:

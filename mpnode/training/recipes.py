@@ -24,13 +24,27 @@ AUTO = {
     # a linear path on the scaled sum, which carries a gene16 model to denser graphs; the model
     # is chosen on a held-out graph when the files hold several (docs/evidence/recipes.md, gene)
     "gene": {"aggregation": "mean", "linear_aggregation": "scaled", "linear_target": "state", "val_graphs": 1},
+    # a carrier's message holds what its neighbours need of its 13 states (3 numbers starve it), and
+    # at a 10-minute budget the error was still falling fast: 1e-2 reaches in 400 epochs what 1e-3
+    # does not (docs/evidence/quadrotor.md, one module for any swarm)
+    "quadrotor_load": {"message_dim": 13, "lr": 1e-2},
 }
+
+#: what recipe auto adds for data as they come (values not observed, irregular times): an
+#: initial-state encoder that estimates what was not measured from a trajectory's first
+#: observations (mpnode.model.encoder; docs/evidence/imperfect-data.md)
+AUTO_IMPERFECT = {"encoder_window": 5}
 
 #: what recipe auto changes from the paper's when `mpnode finetune` continues an MP-NODE model (it
 #: keeps its kind, sizes and aggregation, so only training options belong here): a fine-tuning set
 #: of a few dozen trajectories is one batch of 128, one Adam step an epoch; batches of 8 take
 #: several for about the same time, which gave the lower test nMSE (docs/evidence/recipes.md)
 FINETUNE_AUTO = {"batch_size": 8}
+
+#: system -> what fine-tuning adds: the quadrotor normalisation refitted on the new swarm size (its
+#: attitude spreads shrink with more carriers; refitting weighs them as the metric does, with the
+#: weights changed so the model starts from the same predictions; docs/evidence/quadrotor.md)
+FINETUNE_SYSTEMS = {"quadrotor_load": {"norm": "refit"}}
 
 #: settings of the linear aggregate path, which only an MP-NODE model with messages has
 LINEAR_SETTINGS = ("linear_aggregation", "linear_target")
@@ -43,15 +57,17 @@ def _check(name):
         raise InputError("--recipe", str(name), "is not a recipe", " or ".join(NAMES))
 
 
-def recipe(name, system, kind="mpnode", messages=True):
+def recipe(name, system, kind="mpnode", messages=True, complete=True):
     """The settings of recipe ``name`` for data of ``system`` and a model of ``kind`` (a dict of
-    runs options).  Aggregation and the linear path only concern MP-NODE models with messages;
-    l2s keeps its sum unless told, and node models the paper's batch size.  val_graphs
-    only acts on files with more graphs than it (otherwise the split is random)."""
+    runs options); ``complete``: the data are regular and every value observed.  Aggregation and
+    the linear path only concern MP-NODE models with messages; l2s keeps its sum unless told,
+    and node models the paper's batch size.  val_graphs only acts on files with more graphs
+    than it (otherwise the split is random)."""
     _check(name)
     settings = dict(PAPER)
     if name == "auto":
         settings.update(AUTO_ALL if kind in AUTO_ALL_KINDS else {}, **AUTO.get(system, {}))
+        settings.update({} if complete else AUTO_IMPERFECT)
     if kind != "mpnode":
         settings.pop("aggregation")
     if kind != "mpnode" or not messages:
@@ -65,11 +81,15 @@ def tables(name):
     _check(name)
     if name == "paper":
         return {"paper": PAPER}
-    return {"paper": PAPER, "all": AUTO_ALL, "systems": AUTO, "finetune": FINETUNE_AUTO}
+    return {"paper": PAPER, "all": AUTO_ALL, "systems": AUTO, "imperfect": AUTO_IMPERFECT, "finetune": FINETUNE_AUTO,
+            "finetune_systems": FINETUNE_SYSTEMS}
 
 
-def finetune_recipe(name, kind="mpnode"):
-    """The training settings of recipe ``name`` for fine-tuning a model of ``kind`` (a dict of
-    runs options; ``paper``, or a kind we did not measure: none, so the paper's defaults)."""
+def finetune_recipe(name, kind="mpnode", system=None):
+    """The training settings of recipe ``name`` for fine-tuning a model of ``kind`` on data of
+    ``system`` (a dict of runs options; ``paper``, or a kind we did not measure: none, so the
+    paper's defaults)."""
     _check(name)
-    return dict(FINETUNE_AUTO) if name == "auto" and kind == "mpnode" else {}
+    if name != "auto" or kind != "mpnode":
+        return {}
+    return {**FINETUNE_AUTO, **FINETUNE_SYSTEMS.get(system, {})}
