@@ -228,3 +228,28 @@ def test_a_node_model_refuses_a_scene_of_another_size(tmp_path):
     Model.create(3, 0, message_dim=0, hidden=8, dt=0.05, kind="node", n_nodes=3).save(tmp_path / "n.h5")
     res = run("simulate", tmp_path / "n.h5", "lorenz7", "-o", tmp_path / "s.h5", "-B", 2)
     assert res.exit_code == 2 and "exactly 3 nodes" in res.output and "Traceback" not in res.output
+
+
+def test_the_quadrotor_recipe_and_its_fine_tuning_normalisation(tmp_path):
+    from mpnode.training.recipes import finetune_recipe
+
+    for n, seed in ((3, 1), (4, 2)):
+        res = run("generate", f"quad{n}", "-o", tmp_path / f"q{n}.h5", "-B", 4, "-T", 2, "--seed", seed,
+                  "--workers", 1)
+        assert res.exit_code == 0, res.output
+    res = run("train", tmp_path / "q3.h5", "-o", tmp_path / "src.h5", "--epochs", 1, "--hidden", 4)
+    assert res.exit_code == 0 and "message_dim 13" in res.output, res.output
+    src = Model.load(tmp_path / "src.h5")
+    assert src.spec.message_dim == 13 and training_config(tmp_path / "src.h5").lr == 1e-2
+    # fine-tuning a swarm model on a new size refits its normalisation unless told to keep it
+    assert finetune_recipe("auto", "mpnode", "quadrotor_load")["norm"] == "refit"
+    assert "norm" not in finetune_recipe("auto", "mpnode", "lorenz") and finetune_recipe("paper") == {}
+    res = run("finetune", tmp_path / "src.h5", tmp_path / "q4.h5", "-o", tmp_path / "refit.h5", "--epochs", 1)
+    assert res.exit_code == 0 and "norm refit" in res.output, res.output
+    refit = Model.load(tmp_path / "refit.h5")
+    q4 = np.asarray(read_trajectories(tmp_path / "q4.h5").x)
+    assert not np.allclose(refit.x_mean, src.x_mean) and np.all(refit.x_mean >= q4.min(axis=(0, 1, 2)) - 1e-6)
+    res = run("finetune", tmp_path / "src.h5", tmp_path / "q4.h5", "-o", tmp_path / "keep.h5", "--epochs", 1,
+              "--keep-norm")
+    assert res.exit_code == 0 and "norm refit" not in res.output, res.output
+    np.testing.assert_array_equal(Model.load(tmp_path / "keep.h5").x_mean, src.x_mean)

@@ -208,6 +208,10 @@ def test_eval_holds_the_model_against_holding_the_initial_state_per_state_group(
     res = CliRunner().invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "d.h5"), "--json"])
     report = json.loads(res.output)
     assert report["groups"]["position"]["dims"] == [0] and len(report["hold"]["nmse_per_step"]) == 11
+    # with a warm-up, every error is scored after it, the groups' and holding's too
+    warm = evaluate(m, traj, warmup=3).summary()
+    assert warm["groups"]["velocity"]["hold_nmse"] == pytest.approx(hold[3:, 1].mean())
+    assert warm["hold"]["first_step_not_below"] in (None, *range(3, 11))
     del traj.attrs["state_groups"]
     assert evaluate(m, traj).summary()["groups"] == {}
 
@@ -217,3 +221,11 @@ def test_state_groups_must_name_every_dimension(tmp_path, tiny_linear):
     traj.attrs["state_groups"] = ["position"]
     with pytest.raises(InputError, match="state_groups"):
         write_trajectories(tmp_path / "d.h5", traj)
+    from mpnode.evaluation.metrics import state_groups
+
+    assert state_groups(["body", "body"], 2) == {}  # one group is the whole state: nothing more to report
+    assert state_groups(None, 2) == {}
+    traj.attrs["state_groups"] = ["position", "velocity"]
+    wider = traj.with_hidden_dims(2)  # a model's latent dimensions form a group of their own
+    assert wider.attrs["state_groups"] == ["position", "velocity", "latent", "latent"]
+    write_trajectories(tmp_path / "w.h5", wider)

@@ -50,11 +50,12 @@ for s in $SEEDS; do
   timed "finetuned_$s.h5" mpnode finetune "source_$s.h5" "q6_ft_$k.h5" --time-limit "$FINETUNE" --seed "$s"
 done
 timed finetuned_multi.h5 mpnode finetune multi.h5 q6_ft_1.h5 --time-limit "$FINETUNE" --seed "$first"
+timed kept_norm.h5 mpnode finetune "source_$first.h5" q6_ft_1.h5 --time-limit "$FINETUNE" --seed "$first" --keep-norm
 
 for m in multi.h5 swarm.h5 source_*.h5; do
   ev "$m" q6_test.h5
   ev "$m" q8_test.h5
 done
 for m in source_*.h5; do ev "$m" q3_test.h5; done
-for m in finetuned_*.h5; do ev "$m" q6_test.h5; done
+for m in finetuned_*.h5 kept_norm.h5; do ev "$m" q6_test.h5; done
 python "$HERE/sizes_table.py" "$OUT" | tee table.md

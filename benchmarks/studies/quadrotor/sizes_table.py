@@ -14,7 +14,8 @@ MODELS = [("multi", "quad3 + quad4 + quad5 files (500 + 300 + 300), `mpnode trai
           ("swarm", "the scene set, `mpnode train quad3-5`"),
           ("source_*", "quad3 only (500), `mpnode train q3.h5`"),
           ("finetuned_multi", "the quad3 + 4 + 5 model fine-tuned on 80 quad6, `mpnode finetune`"),
-          ("finetuned_*", "a quad3 model fine-tuned on 80 quad6, `mpnode finetune`")]
+          ("finetuned_*", "a quad3 model fine-tuned on 80 quad6, `mpnode finetune`"),
+          ("kept_norm", "the first quad3 model fine-tuned so, `--keep-norm`")]
 STEPS = (1, 5, 10, 20, 50)
 
 
