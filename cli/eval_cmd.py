@@ -88,15 +88,20 @@ def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20
                         substeps_tol=None, max_substeps=None, warmup=0, truth=None, start="encoder"):
     """Evaluate, and time the reference simulator beside the model when the file names one:
     returns (EvalResult, report dict)."""
+    from data_gen.invariants import invariant_of
     from data_gen.reference import speed_against_reference
     from mpnode.evaluation import stepsize
     from mpnode.evaluation.evaluate import evaluate
+    from mpnode.plot import dimension_names
 
+    invariant = invariant_of(traj)
     result = evaluate(model, traj, source=source, allow_dt_mismatch=allow_dt, substeps=substeps,
                       substeps_tol=substeps_tol or stepsize.DEFAULT_TOL,
                       max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS, warmup=warmup, truth=truth,
-                      start=start)
-    report = {"data": source, **result.summary(), "state_names": traj.attrs.get("state_names")}
+                      start=start, invariant=invariant and invariant[1],
+                      state_names=dimension_names(model.fitted(traj).attrs, model.spec.state_dim))
+    report = {"data": source, **result.summary(), "state_names": traj.attrs.get("state_names"),
+              **({"invariant": invariant[0]} if invariant else {})}
     if reference_sample > 0 and traj.regular:
         report["reference"] = speed_against_reference(model, traj, result, reference_sample)
     return result, report
@@ -123,6 +128,7 @@ def format_report(report, model_name):
                      + (f" (dimension(s) {r['hidden_dims']} never measured in training: not scored)"
                         if r.get("hidden_dims") else ""))
     lines.append("  per step: " + ", ".join(f"{s}: {_g(per[s])}" for s in steps))
+    lines += format_trust(r)
     if r["first_bad_step"] is None:
         lines.append("  blow-ups: none (every prediction finite and inside 10x the data's range)")
     else:
@@ -148,6 +154,28 @@ def format_report(report, model_name):
     elif "reference" in r:
         lines.append("  reference: the file names no system data_gen can rebuild; not timed")
     return "\n".join(lines)
+
+
+def format_trust(r):
+    """The report's lines on how far to trust the error: by block of steps, off the training range,
+    the invariant's drift."""
+    blocks = r.get("nmse_by_block") or []
+    lines = ["  error against horizon (nMSE by block of steps): " + ", ".join(
+        f"{b['steps'][0]}-{b['steps'][1]}: {_g(b['value']) if b['value'] is not None else '-'}" for b in blocks)]
+    drift = r.get("invariant_drift_by_block")
+    if drift:
+        lines.append(f"  drift of the {r['invariant']} (|I(t) - I(0)| / |I(0)|, mean over trajectories; the truth's "
+                     "in brackets): " + ", ".join(f"{b['steps'][0]}-{b['steps'][1]}: {_g(b['value'])} "
+                                                  f"[{_g(b['truth'])}]" for b in drift if b["value"] is not None))
+    if not r.get("training_ranges_recorded", True):
+        lines.append("  off the training range: not checked (the model file records no training ranges; "
+                     "`mpnode finetune` with --epochs 1 records them)")
+    elif not r.get("off_range"):
+        lines.append("  off the training range: no input left the range seen in training")
+    else:
+        lines.append(f"  OFF THE TRAINING RANGE ({len(r['off_range'])} quantities; expect larger errors):")
+        lines += [f"    {e['message']}" for e in r["off_range"]]
+    return lines
 
 
 def format_reference(ref):
@@ -247,7 +275,10 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     result, report = evaluate_and_report(model, traj, data, allow_dt_mismatch, reference_sample, substeps,
                                          substeps_tol, max_substeps, warmup, clean, start)
     report["model"] = model_file
-    report["warnings"] = [warning] if warning else []
+    off = [f"off the training range: {e['message']}" for e in report["off_range"]]
+    for line in off:
+        click.echo(f"warning: {line}", err=True)
+    report["warnings"] = ([warning] if warning else []) + off
     click.echo(json.dumps(report, indent=2, allow_nan=False) if as_json else format_report(report, model_file))
     if plot:  # before the predictions file, which refuses non-finite predictions: a blow-up gets its figure
         from mpnode.plot import plot_eval
