@@ -244,6 +244,15 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     report says which setting, what was tried, and whether the model is faster or slower.
     A MODEL trained on another system than DATA's is evaluated, with a warning.
 
+    How far to trust the error: the nMSE by block of steps (error against horizon;
+    --json: nmse_by_block); the inputs of the model's rollouts that leave the ranges it
+    saw in training (the states per dimension, the in-degree, each aggregate input, the
+    number of nodes; beyond a margin of 25% of the seen width), one warning per quantity
+    on standard error and in the report, naming the value, the bound, by how much and
+    where (--json: off_range, [] when none left); and, for data whose system conserves a
+    quantity (data_gen names it: the coupled pendulum's energy), its drift along the
+    predictions beside the truth's (--json: invariant_drift_by_block).
+
     Substeps: --substeps auto picks the RK4 substeps per dt by step doubling (the
     difference of the rollouts with s and 2s substeps estimates the error of s;
     the smallest s = 1, 2, 4, ... under --substeps-tol wins).  When predictions blow
@@ -332,7 +341,9 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     model's normalisation) widened to hold the initial states; if more substeps
     avoid that, the RK4 step was too large and a --substeps N is suggested.
 
-    A MODEL trained on another system than SCENE's is rolled out, with a warning.
+    A MODEL trained on another system than SCENE's is rolled out, with a warning, and so
+    is one whose inputs leave the ranges it saw in training (states, in-degree, aggregates,
+    number of nodes: one warning per quantity, see `mpnode eval --help`).
     Exit status: 0 written; 2 bad input (also: more trajectories or steps than memory
     holds, refused before any work; OUTPUT being written by another run); 3 predictions
     non-finite (nothing written); 4 the system refused (OUTPUT could not be written).
@@ -369,7 +380,9 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     x0, graphs, gi = initial_states(s)
     model.check_nodes(s.graph.n_nodes, scene, "graph.nodes")
     sim = simulate(model, x0, graphs, gi, s.horizon, substeps=substeps, substeps_tol=substeps_tol,
-                   max_substeps=max_substeps)
+                   max_substeps=max_substeps, state_names=list(system.state_names) or None)
+    for e in sim.off_range or []:
+        click.echo(f"warning: off the training range: {e['message']}", err=True)
     for line in format_substeps(sim.substeps, sim.substeps_report, sim.stability):
         click.echo(line.strip(), err=bool(sim.stability.get("message")) and "WARNING" in line)
     if plot:  # before the trajectory file, which refuses non-finite predictions: a blow-up gets its figure

@@ -106,13 +106,14 @@ class EvalResult:
 @dataclass
 class SimulationResult:
     """predictions : ndarray, shape (B, T+1, N, dx), data units;  seconds : rollout wall time;
-    substeps, substeps_report, stability : as in EvalResult."""
+    substeps, substeps_report, stability, off_range : as in EvalResult."""
 
     predictions: np.ndarray
     seconds: float
     substeps: int
     substeps_report: dict
     stability: dict
+    off_range: list = None
 
 
 def rollout_all(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384, times=None):
@@ -292,7 +293,7 @@ def simulation_box(model, x0):
 
 
 def simulate(model, x0, graphs, graph_index, horizon, u=None, substeps=None, substeps_tol=stepsize.DEFAULT_TOL,
-             max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS):
+             max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS, state_names=None):
     """Roll ``model`` out from x0 (B, N, dx) on ``graphs[graph_index[b]]`` for ``horizon`` steps.
 
     A prediction blows up when it is non-finite or leaves ten times `simulation_box`; the
@@ -308,7 +309,8 @@ def simulate(model, x0, graphs, graph_index, horizon, u=None, substeps=None, sub
     stability = stepsize.stability_check(model, x0, _per_trajectory(graphs, graph_index), u, pred,
                                          blow_up_mask(pred, box=box), substeps_tol, max_substeps=max_substeps,
                                          box=box)
-    return SimulationResult(pred, seconds, model.spec.substeps, auto_report, stability)
+    return SimulationResult(pred, seconds, model.spec.substeps, auto_report, stability,
+                            inputs_off_range(model, x0, graphs, graph_index, u, horizon, state_names=state_names))
 
 
 def learned_seconds_per_trajectory(model, traj, k, repeats=3):

@@ -12,6 +12,8 @@ the output steps (not at every RK4 stage): the same pass on the training split a
 data, so the two compare like with like.  The ranges live in ``Model.attrs[KEY]`` as plain
 lists, and in the model file as the optional group ``seen/`` (docs/model-format.md).
 """
+import warnings
+
 import numpy as np
 
 from mpnode import engine
@@ -72,7 +74,7 @@ def network_inputs(model, x0, graph, u=None, steps=0, times=None):
     un = None if u is None else model.normalize_u(np.asarray(u)).transpose(1, 0, 2, 3).reshape(-1, b * n,
                                                                                              spec.control_dim)
     iv = None if times is None else np.repeat(node_intervals(times), n, axis=1)
-    heard = _aggregates(model, flat)
+    heard = aggregate_inputs(model, flat)
     for t in range(steps + 1):
         if t:
             _, z = engine.integrate(spec, model.theta, z, flat, None if un is None else un[t - 1:t], 1,
@@ -82,7 +84,7 @@ def network_inputs(model, x0, graph, u=None, steps=0, times=None):
         yield t, x.reshape(b, n, dx), {k: a.reshape(b, n, -1) for k, a in heard(z, ut).items()}
 
 
-def _aggregates(model, flat):
+def aggregate_inputs(model, flat):
     """(z, u) -> {quantity: (M, c)}: the aggregate inputs of the model's networks, in its units."""
     spec, p = model.spec, model.params
     dx = spec.state_dim
@@ -93,7 +95,8 @@ def _aggregates(model, flat):
         empty = empty_rows(spec, flat)
 
         def l2s(z, u):
-            xu = z[:, :dx] if u is None else np.concatenate([z[:, :dx], u], axis=1)
+            u = np.zeros((len(z), spec.control_dim)) if u is None else u
+            xu = np.concatenate([z[:, :dx], u], axis=1)
             a = mlp(np.tanh(np.tanh(xu @ p["W_lift"] + p["b_lift"]) @ p["W_msg"] + p["b_msg"]))
             a[empty] = p["psi"]
             return {"aggregate": a}
@@ -243,3 +246,36 @@ def training_ranges(model, datasets, split):
             data = {"state_min": np.nanmin(x, axis=(0, 1, 2)).tolist(), "state_max": np.nanmax(x, axis=(0, 1, 2)).tolist()}
         seen = merge(seen, merge(record(tally), data))
     return seen
+
+
+class Watch:
+    """What a stepped model (mpnode.Simulator) receives, checked step by step against its training
+    ranges: each quantity that leaves them is warned of once (OffRangeWarning), its first
+    departure kept in ``entries``.  Does nothing for a model without recorded ranges."""
+
+    def __init__(self, model, graph, n_copies):
+        self.model, self.seen = model, model.attrs.get(KEY)
+        self.shape = (n_copies, graph.n_nodes, model.spec.state_dim)
+        self.heard = aggregate_inputs(model, batch_graph(graph, n_copies)) if self.seen else None
+        self.entries = {}
+        if self.seen:
+            tally = Tally()
+            add_graphs(tally, [graph], np.zeros(1, dtype=np.int64), graph.n_nodes)
+            self.warn(tally)
+
+    def __call__(self, z, u, step):
+        """Check the full state z (B*N, dx+dm) in the model's units, and u, at output ``step``."""
+        if not self.seen:
+            return
+        tally = Tally()
+        dx = self.model.spec.state_dim
+        tally.add("state", self.model.denormalize_x(np.asarray(z[:, :dx], dtype=np.float64)).reshape(self.shape), step)
+        for name, a in self.heard(z, u).items():
+            tally.add(name, a.reshape(self.shape[:2] + (-1,)), step)
+        self.warn(tally)
+
+    def warn(self, tally):
+        for e in off_range(self.seen, tally):
+            if e["quantity"] not in self.entries:
+                self.entries[e["quantity"]] = e
+                warnings.warn(f"off the training range: {e['message']}", OffRangeWarning, stacklevel=4)
