@@ -161,3 +161,13 @@ def test_the_pendulum_energy_is_conserved_by_the_reference_and_reported_by_eval(
     drift = report["invariant_drift_by_block"]
     assert report["invariant"] == "energy" and all(b["truth"] < 1e-6 for b in drift)
     assert drift[-1]["value"] > 1e-3  # an untrained model does not conserve it
+
+
+def test_train_and_finetune_record_the_ranges_of_their_own_data(tmp_path, tiny_file):
+    quick = ["--epochs", 1, "--hidden", 8, "--batch-size", 32]
+    first, later = tiny_file(tmp_path / "a.h5"), tiny_file(tmp_path / "b.h5", seed=1, offset=3.0)
+    assert run("train", first, "-o", tmp_path / "m.h5", *quick).exit_code == 0
+    assert run("finetune", tmp_path / "m.h5", later, "-o", tmp_path / "f.h5", "--epochs", 1).exit_code == 0
+    trained, tuned = (Model.load(tmp_path / name).attrs[ranges.KEY] for name in ("m.h5", "f.h5"))
+    assert trained["in_degree_max"] == [1.0] and trained["nodes_max"] == [2.0]
+    assert max(trained["state_max"]) < 1.5 and min(tuned["state_max"]) > 2.0  # the fine-tuning data's own
