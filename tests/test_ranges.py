@@ -17,8 +17,7 @@ from mpnode.base.graph import Graph
 from mpnode.data import Trajectories, write_trajectories
 from mpnode.evaluation.evaluate import evaluate
 from mpnode.evaluation.metrics import by_block
-from mpnode.model import Model
-from mpnode.model import ranges
+from mpnode.model import Model, ranges
 
 
 def run(*args):
