@@ -170,3 +170,12 @@ def test_train_and_finetune_record_the_ranges_of_their_own_data(tmp_path, tiny_f
     trained, tuned = (Model.load(tmp_path / name).attrs[ranges.KEY] for name in ("m.h5", "f.h5"))
     assert trained["in_degree_max"] == [1.0] and trained["nodes_max"] == [2.0]
     assert max(trained["state_max"]) < 1.5 and min(tuned["state_max"]) > 2.0  # the fine-tuning data's own
+
+
+def test_simulate_warns_on_standard_error_and_still_writes(tmp_path, model):
+    model.save(tmp_path / "m.h5")
+    write_trajectories(tmp_path / "dense.h5", trajectories(star(9), seed=3))
+    res = run("simulate", tmp_path / "m.h5", tmp_path / "dense.h5", "-o", tmp_path / "sim.h5", "-T", 4)
+    assert res.exit_code == 0, res.output
+    assert "warning: off the training range: in-degree 8 at node 0" in res.stderr
+    assert "off the training range" not in res.stdout and (tmp_path / "sim.h5").exists()
