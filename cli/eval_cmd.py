@@ -290,10 +290,7 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     result, report = evaluate_and_report(model, traj, data, allow_dt_mismatch, reference_sample, substeps,
                                          substeps_tol, max_substeps, warmup, clean, start)
     report["model"] = model_file
-    off = [f"off the training range: {e['message']}" for e in report["off_range"]]
-    for line in off:
-        click.echo(f"warning: {line}", err=True)
-    report["warnings"] = ([warning] if warning else []) + off
+    report["warnings"] = ([warning] if warning else []) + warn_off_range(report["off_range"])
     click.echo(json.dumps(report, indent=2, allow_nan=False) if as_json else format_report(report, model_file))
     if plot:  # before the predictions file, which refuses non-finite predictions: a blow-up gets its figure
         from mpnode.plot import plot_eval
@@ -310,6 +307,14 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
         write_trajectories(predictions, pf)
         if not as_json:
             click.echo(f"wrote {predictions}")
+
+
+def warn_off_range(entries):
+    """Each input off the training range as a warning on standard error; returns the warnings."""
+    lines = [f"off the training range: {e['message']}" for e in entries]
+    for line in lines:
+        click.echo(f"warning: {line}", err=True)
+    return lines
 
 
 def _or_why(make, stability):
@@ -383,8 +388,7 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup,
         st = _start_from_scene(model, scene, trajectories, horizon, seed, warmup)
     sim = simulate(model, st.x0, st.graphs, st.graph_index, st.horizon, substeps=substeps,
                    substeps_tol=substeps_tol, max_substeps=max_substeps, state_names=st.state_names)
-    for e in sim.off_range or []:
-        click.echo(f"warning: off the training range: {e['message']}", err=True)
+    warn_off_range(sim.off_range or [])
     for line in format_substeps(sim.substeps, sim.substeps_report, sim.stability):
         click.echo(line.strip(), err=bool(sim.stability.get("message")) and "WARNING" in line)
     if plot:  # before the trajectory file, which refuses non-finite predictions: a blow-up gets its figure
