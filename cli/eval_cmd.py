@@ -175,7 +175,8 @@ def format_trust(r):
     if drift:
         lines.append(f"  drift of the {r['invariant']} (|I(t) - I(0)| / |I(0)|, mean over trajectories; the truth's "
                      "in brackets): " + ", ".join(f"{b['steps'][0]}-{b['steps'][1]}: {_g(b['value'])} "
-                                                  f"[{_g(b['truth'])}]" for b in drift if b["value"] is not None))
+                                                  f"[{_g(b['truth']) if b['truth'] is not None else '-'}]" for b in drift
+                                                  if b["value"] is not None))
     if not r.get("training_ranges_recorded", True):
         lines.append("  off the training range: not checked (the model file records no training ranges; "
                      "`mpnode finetune` with --epochs 1 records them)")

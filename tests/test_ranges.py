@@ -179,3 +179,15 @@ def test_simulate_warns_on_standard_error_and_still_writes(tmp_path, model):
     assert res.exit_code == 0, res.output
     assert "warning: off the training range: in-degree 8 at node 0" in res.stderr
     assert "off the training range" not in res.stdout and (tmp_path / "sim.h5").exists()
+
+
+def test_blown_up_values_leave_the_report_valid_json():
+    tally = ranges.Tally()
+    tally.add("state", np.array([[[0.0], [1.0]]]), 0)
+    seen = ranges.record(tally)
+    wild = ranges.Tally()
+    wild.add("state", np.array([[[np.inf], [np.nan], [2.0]]]), 5)
+    (e,) = ranges.off_range(seen, wild)
+    assert e["value"] == 2.0 and e["node"] == 2
+    blocks = by_block(np.array([0.0, 1.0, np.inf]), blocks=2)
+    assert blocks[-1]["value"] == np.inf  # metrics keep the number; EvalResult.summary writes it as "inf"

@@ -94,11 +94,14 @@ class EvalResult:
     def trust(self):
         """The summary's entries that say how far to trust the error: nMSE by block of steps
         (error against horizon), the inputs off the training range, the invariant's drift."""
-        first = max(self.warmup, 1)
-        out = {"nmse_by_block": by_block(self.nmse_per_step, first), "off_range": self.off_range or [],
+        def blocks(per_step):  # a blown-up block's inf as a string, as the summary's other numbers
+            return [dict(b, value=b["value"] if b["value"] is None or math.isfinite(b["value"]) else str(b["value"]))
+                    for b in by_block(per_step, max(self.warmup, 1))]
+
+        out = {"nmse_by_block": blocks(self.nmse_per_step), "off_range": self.off_range or [],
                "training_ranges_recorded": self.off_range is not None}
         if self.invariant_drift is not None:
-            pred, truth = (by_block(d, first) for d in self.invariant_drift)
+            pred, truth = (blocks(d) for d in self.invariant_drift)
             out["invariant_drift_by_block"] = [dict(p, truth=t["value"]) for p, t in zip(pred, truth)]
         return out
 

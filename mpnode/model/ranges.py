@@ -41,8 +41,10 @@ class Tally:
         self.lo, self.hi, self.lo_at, self.hi_at = {}, {}, {}, {}
 
     def add(self, name, values, step, first_trajectory=0):
-        """values (B, N, c) at output ``step`` of trajectories first_trajectory.. (NaN ignored)."""
+        """values (B, N, c) at output ``step`` of trajectories first_trajectory.. (NaN ignored, and so
+        is inf: a prediction that blew up is the blow-up test's to report)."""
         v = np.asarray(values, dtype=np.float64)
+        v = np.where(np.isfinite(v), v, np.nan)
         b, n, c = v.shape
         flat = v.reshape(b * n, c)
         if not flat.size:
