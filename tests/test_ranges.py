@@ -191,3 +191,15 @@ def test_blown_up_values_leave_the_report_valid_json():
     assert e["value"] == 2.0 and e["node"] == 2
     blocks = by_block(np.array([0.0, 1.0, np.inf]), blocks=2)
     assert blocks[-1]["value"] == np.inf  # metrics keep the number; EvalResult.summary writes it as "inf"
+
+
+@pytest.mark.parametrize("kind", ["l2s", "node"])
+def test_every_kind_records_and_checks_its_inputs(kind):
+    traj = trajectories(star(4))
+    m = with_ranges(Model.create(2, 0, kind=kind, hidden=8, dt=0.1, seed=0, n_nodes=4 if kind == "node" else None),
+                    traj)
+    seen = m.attrs[ranges.KEY]
+    assert ("aggregate_min" in seen) == (kind == "l2s") and len(seen.get("aggregate_min", [0] * 8)) == 8
+    assert evaluate(m, traj, check_stability=False).off_range == []
+    far = trajectories(star(4), scale=10.0, seed=4)
+    assert any(e["quantity"].startswith("state") for e in evaluate(m, far, check_stability=False).off_range)
