@@ -27,6 +27,7 @@ class TrainConfig:
     ``patience`` epochs without a new best) or "cosine" (from lr down to min_lr over the
     budget: the epochs, or the time limit when that comes first); val_graphs: hold out
     that many whole graphs of every file with more graphs for validation (mpnode.training.batches).
+    input_noise and train_window are the long-rollout options (mpnode.training.loop).
     The defaults are the command line's (`mpnode train --help` says what each does).
     """
 

@@ -21,6 +21,12 @@ on w2, ..., the rest on the full horizon, so a chaotic system is learned without
 exploding gradients of long rollouts from random weights.  Validation stays on the full
 horizon.  The stage is a function of the epoch number alone, which keeps resume exact.
 
+Long rollouts (both off by default): ``input_noise`` adds fresh Gaussian noise, drawn from the
+epoch number, to the initial state of every training rollout (the targets stay clean), so the
+model learns to return towards the data from states a little off them, as its own long rollouts
+are; ``train_window`` trains on windows of that many steps once any curriculum is over, while
+validation, which chooses the model, stays on the full horizon.
+
 Files beside the output model ``OUT``: ``OUT.log.jsonl`` (mpnode.training.log) and
 ``OUT.state``, the `TrainState` checkpoint.  This module knows nothing of any particular system.
 """
