@@ -4,10 +4,10 @@ the training horizon and on four times it.
 For each system it generates training data (300 trajectories of T steps, seed 11) and two test
 files of the same 100 initial states (seed 12): T steps, and 4T steps (`mpnode generate -T`).
 Every variant trains with `mpnode train` for the same number of epochs (the same work whatever
-else the machine runs) under the machine's experiment lock, the baseline with the recipe's
-settings and each other variant with one flag more; `mpnode eval --json` scores it on both test
-files.  Prints a markdown table: test nMSE over steps 1..T and 1..4T, the last step's, their
-ratio to the baseline's, the best epoch and the seconds per epoch.
+else the machine runs; under --lock's lock when given), the baseline with the recipe's settings
+and each other variant with one flag more; `mpnode eval --json` scores it on both test files.
+Prints a markdown table and appends each row to DIR/results.jsonl: test nMSE over steps 1..T
+and 1..4T, at step 4T, their ratio to the baseline's, the best epoch and the seconds per epoch.
 
     python benchmarks/studies/long_rollouts.py --out DIR [--systems coupled_pendulum,lorenz3]
         [--epochs 200] [--variant noise0.05:--input-noise=0.05] [--seed 0] [--lock FILE]
@@ -94,7 +94,8 @@ def main(argv=None):
         for label, flags in variants.items():
             rows.append(run(args.out, system, label, flags, args.epochs, args.seed, args.lock))
             print(json.dumps(rows[-1]), flush=True)
-    (args.out / f"results_seed{args.seed}.json").write_text(json.dumps(rows, indent=1))
+            with open(args.out / "results.jsonl", "a") as f:  # one line per row: several runs may share --out
+                f.write(json.dumps(rows[-1]) + "\n")
     print(table(rows))
 
 
