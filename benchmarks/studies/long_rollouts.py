@@ -51,7 +51,7 @@ def run(folder, system, label, flags, epochs, seed, lock):
     for name, horizon in (("short", HORIZON), ("long", 4 * HORIZON)):
         report = json.loads(mpnode("eval", model, data(folder, system, 100, 12, horizon), "--json",
                                    "--reference-sample", 0))
-        row[f"nmse_{name}"], row[f"last_{name}"] = report["nmse"], report["nmse_last"]
+        row[f"nmse_{name}"], row[f"last_{name}"] = float(report["nmse"]), float(report["nmse_last"])  # "inf" too
     log = [json.loads(line) for line in open(f"{model}.log.jsonl")][1:]
     row.update(epochs=len(log), best_epoch=min(log, key=lambda r: r["val_loss"])["epoch"],
                seconds_per_epoch=statistics.median(r["seconds"] for r in log))
