@@ -59,13 +59,13 @@ def run(folder, system, label, flags, epochs, seed, lock):
 
 
 def table(rows):
-    lines = [f"| system | variant | nMSE 1..{HORIZON} | / baseline | nMSE 1..{4 * HORIZON} | / baseline | "
-             f"nMSE at step {4 * HORIZON} | best epoch | s per epoch |", "| --- " * 9 + "|"]
+    lines = [f"| system | seed | variant | nMSE 1..{HORIZON} | / baseline | nMSE 1..{4 * HORIZON} | / baseline | "
+             f"nMSE at step {4 * HORIZON} | best epoch | s per epoch |", "| --- " * 10 + "|"]
     base = {(r["system"], r["seed"]): r for r in rows if r["variant"] == "baseline"}
     for r in rows:
         b = base.get((r["system"], r["seed"]))
         ratio = (lambda k: f"{r[k] / b[k]:.2f}") if b else (lambda k: "-")
-        lines.append(f"| {r['system']} | {r['variant']} | {r['nmse_short']:.4g} | {ratio('nmse_short')} | "
+        lines.append(f"| {r['system']} | {r['seed']} | {r['variant']} | {r['nmse_short']:.4g} | {ratio('nmse_short')} | "
                      f"{r['nmse_long']:.4g} | {ratio('nmse_long')} | {r['last_long']:.4g} | "
                      f"{r['best_epoch']} of {r['epochs']} | {r['seconds_per_epoch']:.3f} |")
     return "\n".join(lines)
