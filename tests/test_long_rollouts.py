@@ -1,7 +1,6 @@
 """Rollouts that hold: fresh noise on the initial states of the training rollouts (--input-noise)
 and training on windows while the model is chosen by the full horizon (--train-window) -- the
 gradient stays exact, the runs resume bit for bit, the options are checked and reach the CLI."""
-import json
 
 import numpy as np
 import pytest
@@ -55,7 +54,9 @@ def test_the_gradient_from_noisy_initial_states_is_exact_and_the_targets_stay_cl
 
 
 def test_start_noise_is_fresh_every_epoch_and_off_at_zero():
-    draw = lambda epoch: start_noise(np.random.default_rng([0, 7, epoch]), 0.1, (500, 2))  # noqa: E731
+    def draw(epoch):
+        return start_noise(np.random.default_rng([0, 7, epoch]), 0.1, (500, 2))
+
     a, b = draw(1), draw(2)
     assert not np.array_equal(a, b) and np.array_equal(a, draw(1))
     assert 0.09 < a.std() < 0.11 and abs(a.mean()) < 0.02
@@ -64,7 +65,7 @@ def test_start_noise_is_fresh_every_epoch_and_off_at_zero():
 
 def test_input_noise_changes_training_and_a_stopped_run_resumes_bit_for_bit(tmp_path, tiny_linear, fresh):
     traj = tiny_linear(B=16, T=6)
-    config = dict(batch_size=8, lr=1e-2, input_noise=0.05)
+    config = {"batch_size": 8, "lr": 1e-2, "input_noise": 0.05}
     straight = fit(fresh(), [traj], TrainConfig(epochs=4, **config), tmp_path / "a.h5")
     plain = fit(fresh(), [traj], TrainConfig(epochs=4, batch_size=8, lr=1e-2))
     assert not np.array_equal(straight.model.theta, plain.model.theta)
@@ -104,7 +105,7 @@ def test_cli_flags_reach_training_and_bad_values_exit_2(tmp_path, tiny_file):
     res = CliRunner().invoke(main, ["train", data, "-o", str(out), "--epochs", "2", "--batch-size", "8",
                                     "--input-noise", "0.02", "--train-window", "4"])
     assert res.exit_code == 0, res.output
-    assert [json.loads(line)["window"] for line in open(log_path(out))][1:] == [4, 4]
+    assert [r["window"] for r in read_log(log_path(out))][1:] == [4, 4]
     for flag, bad in (("--input-noise", "-1"), ("--train-window", "-2"), ("--train-window", "x")):
         res = CliRunner().invoke(main, ["train", data, "-o", str(tmp_path / "n.h5"), flag, bad])
         assert res.exit_code == 2 and flag in res.output and "Traceback" not in res.output, (flag, res.output)

@@ -10,7 +10,7 @@ Prints a markdown table and appends each row to DIR/results.jsonl: test nMSE ove
 and 1..4T, at step 4T, their ratio to the baseline's, the best epoch and the seconds per epoch.
 
     python benchmarks/studies/long_rollouts.py --out DIR [--systems coupled_pendulum,lorenz3]
-        [--epochs 200] [--variant noise0.05:--input-noise=0.05] [--seed 0] [--lock FILE]
+        [--epochs 200] [--variant noise0.05:--input-noise=0.05] [--seed 0] [--train-horizon 100] [--lock FILE]
 """
 import argparse
 import json
@@ -28,7 +28,7 @@ HORIZON = 50
 
 def mpnode(*args, lock=None):
     cmd = (["flock", str(lock)] if lock else []) + ["mpnode", *map(str, args)]
-    out = subprocess.run(cmd, capture_output=True, text=True)
+    out = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if out.returncode:
         sys.exit(f"{' '.join(cmd)} failed ({out.returncode}):\n{out.stderr[-2000:]}")
     return out.stdout
@@ -41,32 +41,41 @@ def data(folder, system, trajectories, seed, horizon):
     return path
 
 
-def run(folder, system, label, flags, epochs, seed, lock):
-    """Train (unless done) and evaluate one variant: its row of the table as a dict."""
-    train = data(folder, system, 300, 11, HORIZON)
-    model = folder / f"{system}_{label}_seed{seed}.h5"
+def run(folder, system, label, flags, epochs, seed, lock, train_horizon=HORIZON):
+    """Train (unless done) and evaluate one variant: its row of the table as a dict.  A
+    ``train_horizon`` other than HORIZON trains on longer trajectories of the same initial states."""
+    train = data(folder, system, 300, 11, train_horizon)
+    longer = "" if train_horizon == HORIZON else f"_T{train_horizon}"
+    model = folder / f"{system}{longer}_{label}_seed{seed}.h5"
     if not model.exists():
         mpnode("train", train, "-o", model, "--epochs", epochs, "--seed", seed, *flags, lock=lock)
-    row = {"system": system, "variant": label, "seed": seed}
+    row = {"system": system, "variant": label + longer, "seed": seed}
     for name, horizon in (("short", HORIZON), ("long", 4 * HORIZON)):
         report = json.loads(mpnode("eval", model, data(folder, system, 100, 12, horizon), "--json",
                                    "--reference-sample", 0))
         row[f"nmse_{name}"], row[f"last_{name}"] = float(report["nmse"]), float(report["nmse_last"])  # "inf" too
-    log = [json.loads(line) for line in open(f"{model}.log.jsonl")][1:]
+    with open(f"{model}.log.jsonl") as f:
+        log = [json.loads(line) for line in f][1:]
     row.update(epochs=len(log), best_epoch=min(log, key=lambda r: r["val_loss"])["epoch"],
                seconds_per_epoch=statistics.median(r["seconds"] for r in log))
     return row
 
 
+def ratio(row, base, key):
+    """row[key] over the baseline's, or "-" without a baseline."""
+    return f"{row[key] / base[key]:.2f}" if base else "-"
+
+
 def table(rows):
-    lines = [f"| system | seed | variant | nMSE 1..{HORIZON} | / baseline | nMSE 1..{4 * HORIZON} | / baseline | "
-             f"nMSE at step {4 * HORIZON} | best epoch | s per epoch |", "| --- " * 10 + "|"]
+    header = (f"| system | seed | variant | nMSE 1..{HORIZON} | / baseline | nMSE 1..{4 * HORIZON} | / baseline | "
+              f"nMSE at step {4 * HORIZON} | best epoch | s per epoch |")
+    lines = [header, "| --- " * 10 + "|"]
     base = {(r["system"], r["seed"]): r for r in rows if r["variant"] == "baseline"}
     for r in rows:
         b = base.get((r["system"], r["seed"]))
-        ratio = (lambda k: f"{r[k] / b[k]:.2f}") if b else (lambda k: "-")
-        lines.append(f"| {r['system']} | {r['seed']} | {r['variant']} | {r['nmse_short']:.4g} | {ratio('nmse_short')} | "
-                     f"{r['nmse_long']:.4g} | {ratio('nmse_long')} | {r['last_long']:.4g} | "
+        lines.append(f"| {r['system']} | {r['seed']} | {r['variant']} | {r['nmse_short']:.4g} | "
+                     f"{ratio(r, b, 'nmse_short')} | {r['nmse_long']:.4g} | {ratio(r, b, 'nmse_long')} | "
+                     f"{r['last_long']:.4g} | "
                      f"{r['best_epoch']} of {r['epochs']} | {r['seconds_per_epoch']:.3f} |")
     return "\n".join(lines)
 
@@ -80,6 +89,8 @@ def main(argv=None):
     p.add_argument("--variant", action="append", default=[], metavar="LABEL:FLAG=VALUE",
                    help="train this variant too (baseline plus the train flags), e.g. noise0.1:--input-noise=0.1; "
                         "default: " + ", ".join(VARIANTS))
+    p.add_argument("--train-horizon", type=int, default=HORIZON, help="steps of the training trajectories (the "
+                   f"test files stay {HORIZON} and {4 * HORIZON} steps): e.g. 100 with --train-window=50")
     p.add_argument("--lock", type=Path, help="hold this file's lock while a model trains (one timed run at a time)")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -92,7 +103,7 @@ def main(argv=None):
     rows = []
     for system in args.systems.split(","):
         for label, flags in variants.items():
-            rows.append(run(args.out, system, label, flags, args.epochs, args.seed, args.lock))
+            rows.append(run(args.out, system, label, flags, args.epochs, args.seed, args.lock, args.train_horizon))
             print(json.dumps(rows[-1]), flush=True)
             with open(args.out / "results.jsonl", "a") as f:  # one line per row: several runs may share --out
                 f.write(json.dumps(rows[-1]) + "\n")
