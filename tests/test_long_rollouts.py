@@ -85,6 +85,10 @@ def test_train_window_trains_on_windows_and_chooses_the_model_on_the_full_horizo
     # validation (what chooses the model) is the same full-horizon figure in both runs: the
     # untrained model's epoch-0 validation loss agrees
     assert log[0]["val_loss"] == full.history[0]["val_loss"]
+    # a window as long as the data (or longer) is the full horizon, bit for bit: recipe auto's
+    # Lorenz window of 50 leaves training on 50-step data as it was
+    same = fit(fresh(), [traj], TrainConfig(epochs=3, batch_size=8, lr=1e-2, train_window=10))
+    assert np.array_equal(same.model.theta, full.model.theta)
     # after a curriculum, the window is train_window rather than the full horizon
     config = TrainConfig(curriculum=(2,), curriculum_epochs=2, train_window=5)
     assert [curriculum_stage(config, e) for e in (1, 2, 3, 9)] == [(0, 2), (0, 2), (1, 5), (1, 5)]
