@@ -8,5 +8,5 @@ numba or NumPy), `rollout` (the entry points), `numpy_path` (every kind in plain
 mpnode.base.  It knows nothing of files, data sets or training.
 """
 from .backend import BACKENDS, numba_problem, resolve_backend  # noqa: F401
-from .rollout import forward, forward_with_vjp, initial_state, integrate  # noqa: F401
+from .rollout import forward, forward_with_vjp, initial_state, integrate, integrate_with_vjp  # noqa: F401
 from .spec import AGGREGATIONS, KINDS, LINEAR_TARGETS, FieldSpec, default_aggregation  # noqa: F401

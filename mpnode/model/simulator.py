@@ -64,15 +64,34 @@ class Simulator:
         if self._z is None:
             raise RuntimeError("call reset(x0) before step()")
         m, spec = self.model, self.model.spec
-        if u is not None:
-            u = np.asarray(u)
-            want = self._shape[:2] + (spec.control_dim,)
-            if u.shape != want:
-                raise ValueError(f"u has shape {u.shape}, expected {want}")
-            u = m.normalize_u(u).reshape(1, -1, spec.control_dim)
+        u = None if u is None else self._controls(u)[None]
         _, self._z = engine.integrate(spec, m.theta, self._z, self._flat, u, 1, backend=self.backend)
         self.steps += 1
         return self.state
+
+    def jacobians(self, u=None, sparse=False):
+        """The derivatives of the state after the next step, (Jx, Ju): with respect to the
+        current state (messages held at their current values) and to the controls u (B, N, du)
+        held over the step (None for a model without controls), as `step` takes them.
+
+        In the data's units and the model's dtype, node-major: Jx (B, N*dx, N*dx), Ju
+        (B, N*dx, N*du); with ``sparse`` two lists of B scipy CSR arrays, whose pattern
+        follows the graph (a node's next state hears nodes a few hops away within one step:
+        `mpnode.engine.jacobians`), for large N.  Exact (the step's own discrete adjoint); it
+        does not advance the simulator.  Needs numba.
+        """
+        from mpnode.engine.jacobians import step_jacobians
+
+        self._require_reset()
+        m, spec = self.model, self.model.spec
+        un = None if u is None else self._controls(u)
+        jx, ju = step_jacobians(spec, m.theta, self._z, self.graph, un, sparse)
+        n = self.graph.n_nodes
+        sx = np.tile(m.x_std, n)  # node-major scales: d x / d xn = std
+        su = np.tile(m.u_std, n)
+        if sparse:
+            return ([_scaled(j, sx, 1 / sx, m.dtype) for j in jx], [_scaled(j, sx, 1 / su, m.dtype) for j in ju])
+        return (jx * (sx[:, None] * (1 / sx))).astype(m.dtype), (ju * (sx[:, None] * (1 / su))).astype(m.dtype)
 
     @property
     def state(self):
@@ -91,6 +110,14 @@ class Simulator:
             return None
         return self._z[:, spec.state_dim:].reshape(self._shape[:2] + (spec.message_dim,)).copy()
 
+    def _controls(self, u):
+        """u (B, N, du) in data units as the engine takes it: normalised, flat (B*N, du)."""
+        u = np.asarray(u)
+        want = self._shape[:2] + (self.model.spec.control_dim,)
+        if u.shape != want:
+            raise ValueError(f"u has shape {u.shape}, expected {want}")
+        return self.model.normalize_u(u).reshape(-1, want[2])
+
     def _require_reset(self):
         if self._z is None:
             raise RuntimeError("call reset(x0) first")
@@ -103,3 +130,10 @@ def _as_graph(graph):
     if is_networkx(graph):
         return as_graph(graph, graph.number_of_nodes(), directed=graph.is_directed())
     raise InputError("graph", "graph", f"is a {type(graph).__name__}", "an mpnode.Graph or a networkx graph")
+
+
+def _scaled(j, rows, cols, dtype):
+    """diag(rows) @ j @ diag(cols) for a scipy CSR array, in ``dtype``."""
+    out = j.copy()
+    out.data = (out.data * (rows[np.repeat(np.arange(j.shape[0]), np.diff(j.indptr))] * cols[j.indices])).astype(dtype)
+    return out
