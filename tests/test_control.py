@@ -1,0 +1,87 @@
+"""Shooting MPC through a learned model (mpnode.control): its gradient in the data's units equals
+central finite differences of the cost (float64), its controls stay in their bounds, and in closed
+loop on the model itself it brings the state nearer a target than holding the first guess."""
+import numpy as np
+import pytest
+from engine_helpers import make_graph, random_theta, spec_
+
+from mpnode import Model, Simulator
+from mpnode.control import ShootingMPC, optimise_controls, tracking_cost
+
+N, DX, DU, B, H = 6, 2, 2, 2, 4
+
+KINDS = {
+    "mpnode": dict(message_dim=3),
+    "l2s": dict(kind="l2s", aggregation="sum"),
+    "node": dict(kind="node", n_nodes=N),
+}
+
+
+def make_model(name, dtype=np.float64, seed=0):
+    rng = np.random.default_rng(seed)
+    spec = spec_(state_dim=DX, control_dim=DU, hidden=8, dt=0.1, substeps=1, **{"message_dim": 0, **KINDS[name]})
+    return Model(random_theta(rng, spec, dtype=dtype), spec, x_mean=rng.standard_normal(DX),
+                 x_std=1 + rng.random(DX), u_mean=rng.standard_normal(DU), u_std=1 + rng.random(DU))
+
+
+def graph():
+    return make_graph(np.random.default_rng(1), N)
+
+
+@pytest.mark.parametrize("name", KINDS)
+def test_the_cost_gradient_matches_finite_differences(name):
+    rng = np.random.default_rng(2)
+    mpc = ShootingMPC(make_model(name), graph(), H)
+    mpc.reset(rng.standard_normal((B, N, DX)), 0.0)
+    cost = tracking_cost(rng.standard_normal((B, H + 1, N, DX)), [1.0, 0.5], [0.1, 0.2])
+    z0 = mpc._z.copy()
+    U = rng.standard_normal((B, H, N, DU))
+
+    def total(U):
+        X, vjp = mpc._predict(z0, U)
+        value, dX, dU = cost(X, U)
+        return value, vjp(dX) + dU
+
+    value, grad = total(U)
+    eps = 1e-6
+    for _ in range(3):
+        d = rng.standard_normal(U.shape)
+        d /= np.linalg.norm(d)
+        fd = (total(U + eps * d)[0] - total(U - eps * d)[0]) / (2 * eps)
+        assert abs(fd - np.sum(grad * d)) < 1e-6 * abs(fd), (fd, np.sum(grad * d))
+
+
+def test_optimise_controls_keeps_to_its_bounds():
+    """x_k = the sum of the controls so far, a target beyond reach: every control at its bound."""
+    def predict(U):
+        X = np.concatenate([np.zeros((1, 1, 1, 2)), np.cumsum(U, axis=1)], axis=1)
+        return X, lambda dX: np.cumsum(dX[:, :0:-1], axis=1)[:, ::-1]
+
+    cost = tracking_cost(np.array([1.0, -1.0]), [1.0, 1.0], [0.0, 0.0])
+    U, info = optimise_controls(predict, cost, np.zeros((1, H, 1, 2)), bounds=(-0.06, 0.1), iterations=50)
+    np.testing.assert_allclose(U[0, :, 0], np.broadcast_to([0.1, -0.06], (H, 2)), atol=1e-9)
+    assert info["iterations"] >= 1 and info["evaluations"] >= 1
+
+
+@pytest.mark.parametrize("name", ["mpnode", "l2s"])
+def test_closed_loop_on_the_model_comes_nearer_the_target_than_holding_the_guess(name):
+    model, g = make_model(name), graph()
+    rng = np.random.default_rng(4)
+    x0 = rng.standard_normal((B, N, DX))
+    target = model.rollout(x0, g, np.full((B, 8, N, DU), 0.5))[:, -1]  # reachable: where u = 0.5 leads
+    cost = tracking_cost(target[:, None], [1.0, 1.0], [1e-3, 1e-3])
+    plant = Simulator(model, g)
+    mpc = ShootingMPC(model, g, H, bounds=(-1.0, 1.0), iterations=20)
+    x, held = plant.reset(x0), model.rollout(x0, g, np.zeros((B, 8, N, DU)))[:, -1]
+    mpc.reset(x0, 0.0)
+    for _ in range(8):
+        u = mpc.control(x, cost)
+        assert u.shape == (B, N, DU) and np.abs(u).max() <= 1.0
+        x = plant.step(u)
+    assert np.linalg.norm(x - target) < 0.8 * np.linalg.norm(held - target)
+
+
+def test_a_model_without_controls_is_refused():
+    spec = spec_(state_dim=DX, control_dim=0, message_dim=2)
+    with pytest.raises(ValueError, match="no controls"):
+        ShootingMPC(Model(random_theta(np.random.default_rng(0), spec), spec), graph(), H)
