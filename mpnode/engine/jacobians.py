@@ -76,6 +76,13 @@ def _copies(graph, n):
     return block_diagonal([graph] * n)
 
 
+@functools.lru_cache(maxsize=8)
+def _colouring(spec, graph):
+    """(pattern, colours) of ``spec`` on ``graph``, kept: a control loop asks every step."""
+    pattern = reach_pattern(spec, graph)
+    return pattern, row_colours(pattern)
+
+
 def step_jacobians(spec, theta, z, graph, u=None, sparse=False):
     """d(x after one step)/d(x) and d(.)/d(u) of B copies of ``graph`` from the full state z.
 
@@ -87,8 +94,7 @@ def step_jacobians(spec, theta, z, graph, u=None, sparse=False):
     n, dx, du = graph.n_nodes, spec.state_dim, spec.control_dim
     z = np.asarray(z)
     b = z.shape[0] // n
-    pattern = reach_pattern(spec, graph)
-    colour = row_colours(pattern)
+    pattern, colour = _colouring(spec, graph)
     n_copies = (int(colour.max()) + 1) * dx
     rows, cols = np.repeat(np.arange(n), np.diff(pattern.indptr)), pattern.indices
     gx_all = np.empty((n_copies, b, n, dx), dtype=np.asarray(theta).dtype)
