@@ -87,3 +87,23 @@ def test_a_model_without_controls_is_refused():
     spec = spec_(state_dim=DX, control_dim=0, message_dim=2)
     with pytest.raises(ValueError, match="no controls"):
         ShootingMPC(Model(random_theta(np.random.default_rng(0), spec), spec), graph(), H)
+
+
+def test_zero_messages_start_every_plan_as_a_fresh_reset_would():
+    """messages="zero": a plan after steps equals the plan of a controller reset at that state."""
+    model, g = make_model("mpnode"), graph()
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal((B, N, DX))
+    cost = tracking_cost(np.zeros(DX), [1.0, 1.0], [0.1, 0.1])
+    mpc = ShootingMPC(model, g, H, bounds=(-1.0, 1.0), iterations=5, messages="zero")
+    mpc.reset(x, 0.0)
+    plant = Simulator(model, g)
+    plant.reset(x)
+    for _ in range(3):
+        x = plant.step(mpc.control(x, cost))
+    fresh = ShootingMPC(model, g, H, bounds=(-1.0, 1.0), iterations=5)
+    fresh.reset(x, 0.0)
+    fresh.plan = mpc.plan.copy()
+    np.testing.assert_array_equal(fresh.control(x, cost), mpc.control(x, cost))
+    with pytest.raises(ValueError, match="carry"):
+        ShootingMPC(model, g, H, messages="none")

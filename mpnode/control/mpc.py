@@ -67,8 +67,13 @@ class ShootingMPC:
 
     model : a Model with controls; graph : an mpnode Graph (N nodes) shared by the copies;
     horizon : H steps of the model's dt; bounds : (low, high) of the controls, data units;
-    iterations : L-BFGS-B iterations per step.  The model runs in float64 (a float32 model
-    is copied: the line search needs its cost to more digits than float32 gives).
+    iterations : L-BFGS-B iterations per step; messages : what an MP-NODE's messages (its
+    hidden state) start each plan from: "carry" (those the model reached stepping from the
+    previous observation under the control applied) or "zero" (0, as every training window
+    starts: right when the data start anywhere in the state space, and in a loop longer than
+    the training horizon, where carried messages may drift where training never took them).
+    The model runs in float64 (a float32 model is copied: the line search needs its cost to
+    more digits than float32 gives).
 
     >>> mpc = ShootingMPC(model, graph, horizon=10, bounds=(0.0, 4.66))
     >>> mpc.reset(x0, u_guess)                      # (B, N, dx), (B, N, du)
@@ -76,16 +81,16 @@ class ShootingMPC:
     ...     u = mpc.control(x, tracking_cost(x_ref[t], q, r))   # x: the observed state
     ...     x = plant.step(u)
 
-    The model's messages (an MP-NODE's hidden state) are carried from step to step: each
-    call starts from the observed x and the messages the model reached stepping from the
-    previous observation under the control applied.
     """
 
-    def __init__(self, model, graph, horizon, bounds=None, iterations=30):
+    def __init__(self, model, graph, horizon, bounds=None, iterations=30, messages="carry"):
         if not model.spec.control_dim:
             raise ValueError("the model has no controls to optimise")
+        if messages not in ("carry", "zero"):
+            raise ValueError(f"messages must be 'carry' or 'zero', not {messages!r}")
         self.model = model.copy(np.float64)
         self.graph, self.horizon, self.bounds, self.iterations = graph, int(horizon), bounds, int(iterations)
+        self.messages = messages
         self.info = None  # the last optimisation's cost, iterations, evaluations, seconds
 
     def reset(self, x0, u_guess):
@@ -101,6 +106,8 @@ class ShootingMPC:
         """The control (B, N, du) to apply now, from the observed state x (B, N, dx)."""
         m, spec = self.model, self.model.spec
         self._z[:, :spec.state_dim] = m.normalize_x(np.asarray(x)).reshape(-1, spec.state_dim)
+        if self.messages == "zero":
+            self._z[:, spec.state_dim:] = 0
         z0 = self._z.copy()
         self.plan, self.info = optimise_controls(lambda U: self._predict(z0, U), cost, self.plan, self.bounds,
                                                  self.iterations)

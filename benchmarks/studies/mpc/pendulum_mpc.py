@@ -90,10 +90,11 @@ def true_mpc(target, horizon, iterations):
     return control
 
 
-def learned_mpc(model, target, horizon, iterations):
+def learned_mpc(model, target, horizon, iterations, messages):
     x_ref = np.stack([target, np.zeros(2)], axis=1)
     cost = tracking_cost(x_ref, Q, R, static_force(target)[:, None])
-    mpc = ShootingMPC(model, Graph.complete(2), horizon, bounds=(-U_MAX, U_MAX), iterations=iterations)
+    mpc = ShootingMPC(model, Graph.complete(2), horizon, bounds=(-U_MAX, U_MAX), iterations=iterations,
+                      messages=messages)
     started = []
 
     def control(y):
@@ -126,17 +127,20 @@ def main():
     ap.add_argument("--first-seed", type=int, default=10_000)
     ap.add_argument("--horizon", type=int, default=20)
     ap.add_argument("--iterations", type=int, default=30)
+    ap.add_argument("--messages", default="zero", choices=("zero", "carry"),
+                    help="the learned model's messages at the start of each plan (ShootingMPC)")
     ap.add_argument("--out", default=os.path.dirname(os.path.abspath(__file__)))
     a = ap.parse_args()
     model = Model.load(a.model)
     low, high = np.array([-np.pi / 4, -0.5]), np.array([np.pi / 4, 0.5])
-    results = {"model": a.model, "horizon": a.horizon, "iterations": a.iterations, "runs": []}
+    results = {"model": a.model, "horizon": a.horizon, "iterations": a.iterations, "messages": a.messages,
+               "runs": []}
     for r in range(a.runs):
         rng = np.random.default_rng(np.random.SeedSequence(a.first_seed + r))
         y0, target = rng.uniform(low, high, size=(2, 2)).ravel(), rng.uniform(-0.15, 0.15, size=2)
         row = {"seed": a.first_seed + r, "y0": y0.tolist(), "target": target.tolist()}
         for name, ctrl in (("pd", pd(target)), ("true", true_mpc(target, a.horizon, a.iterations)),
-                           ("learned", learned_mpc(model, target, a.horizon, a.iterations))):
+                           ("learned", learned_mpc(model, target, a.horizon, a.iterations, a.messages))):
             th, u, secs = closed_loop(ctrl, y0)
             err = np.abs(th - target).mean(axis=1)
             row[name] = dict(final_error=float(err[-20:].mean()), ms_per_step=1e3 * float(np.mean(secs)),

@@ -34,7 +34,7 @@ from mpnode.control import ShootingMPC, optimise_controls, tracking_cost
 N, DT, STEPS = 3, 0.1, 50
 #: cost weights per state dimension: position, quaternion, velocity, body rates; per thrust
 Q = np.array([10.0] * 3 + [1.0] * 4 + [1.0] * 3 + [0.0] * 3)
-R = np.full(4, 0.05)
+R = np.full(4, 0.5)
 
 
 def new_path(seed):
@@ -116,8 +116,9 @@ def true_mpc(ref, physics, horizon, iterations):
     return control
 
 
-def learned_mpc(model, ref, physics, horizon, iterations):
-    mpc = ShootingMPC(model, Graph.complete(N), horizon, bounds=(0.0, physics.F_max), iterations=iterations)
+def learned_mpc(model, ref, physics, horizon, iterations, messages):
+    mpc = ShootingMPC(model, Graph.complete(N), horizon, bounds=(0.0, physics.F_max), iterations=iterations,
+                      messages=messages)
     started = []
 
     def control(t, y):
@@ -164,15 +165,18 @@ def main():
     ap.add_argument("--paths", type=int, default=20)
     ap.add_argument("--first-seed", type=int, default=10_000, help="path p draws from SeedSequence(first_seed + p)")
     ap.add_argument("--horizon", type=int, default=10)
-    ap.add_argument("--iterations", type=int, default=15, help="L-BFGS-B iterations per control step")
+    ap.add_argument("--iterations", type=int, default=30, help="L-BFGS-B iterations per control step")
     ap.add_argument("--controllers", default="scene,true,learned")
+    ap.add_argument("--messages", default="carry", choices=("carry", "zero"),
+                    help="the learned model's messages at the start of each plan (ShootingMPC)")
     ap.add_argument("--out", default=os.path.dirname(os.path.abspath(__file__)))
     a = ap.parse_args()
     model = Model.load(a.model)
     makers = {"scene": scene_controller,
               "true": lambda ref, p: true_mpc(ref, p, a.horizon, a.iterations),
-              "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations)}
-    results = {"model": a.model, "horizon": a.horizon, "iterations": a.iterations, "paths": []}
+              "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages)}
+    results = {"model": a.model, "horizon": a.horizon, "iterations": a.iterations, "messages": a.messages,
+               "paths": []}
     for p in range(a.paths):
         path = new_path(a.first_seed + p)
         row = {"seed": a.first_seed + p, "start": path[0].tolist(), "goal": path[1].tolist(), "door": path[2].tolist()}
