@@ -63,8 +63,20 @@ def test_optimise_controls_keeps_to_its_bounds():
     assert info["iterations"] >= 1 and info["evaluations"] >= 1
 
 
+@pytest.fixture
+def one_thread():
+    """numba on one thread while the test runs: a control loop of a dozen nodes is too small to
+    share (on a busy machine each parallel region waits for a descheduled thread)."""
+    import numba
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    yield
+    numba.set_num_threads(before)
+
+
 @pytest.mark.parametrize("name", KINDS)
-def test_closed_loop_on_the_model_follows_a_reachable_reference(name):
+def test_closed_loop_on_the_model_follows_a_reachable_reference(name, one_thread):
     """The reference is the model's own path under u = 0.5 (unknown to the controller, which
     starts from u = 0): MPC on the model itself as the plant follows it, messages carried along."""
     model, g = make_model(name), graph()
@@ -89,7 +101,7 @@ def test_a_model_without_controls_is_refused():
         ShootingMPC(Model(random_theta(np.random.default_rng(0), spec), spec), graph(), H)
 
 
-def test_zero_messages_start_every_plan_as_a_fresh_reset_would():
+def test_zero_messages_start_every_plan_as_a_fresh_reset_would(one_thread):
     """messages="zero": a plan after steps equals the plan of a controller reset at that state."""
     model, g = make_model("mpnode"), graph()
     rng = np.random.default_rng(5)
