@@ -144,7 +144,7 @@ def main():
             th, u, secs = closed_loop(ctrl, y0)
             err = np.abs(th - target).mean(axis=1)
             row[name] = dict(final_error=float(err[-20:].mean()), ms_per_step=1e3 * float(np.mean(secs)),
-                             angles=th.tolist(), forces=u.tolist())
+                             angles=np.round(th, 6).tolist(), forces=np.round(u, 6).tolist())  # 1e-6: the file's size
             print(f"run {r} {name:8s} error over the last second {err[-20:].mean():.4f} rad, "
                   f"{1e3 * np.mean(secs):.1f} ms/step", flush=True)
         results["runs"].append(row)

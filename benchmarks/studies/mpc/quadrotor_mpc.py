@@ -184,7 +184,7 @@ def main():
             err, secs, loads, wanted, failure = closed_loop(makers[name], path)
             row[name] = dict(mean_error=float(err.mean()), max_error=float(err.max()), failure=failure,
                              ms_per_step=1e3 * float(np.mean(secs)), ms_p95=1e3 * float(np.percentile(secs, 95)),
-                             load=loads.tolist(), reference=wanted.tolist())
+                             load=np.round(loads, 6).tolist(), reference=np.round(wanted, 6).tolist())
             print(f"path {p} {name:8s} load error mean {err.mean():.3f} m max {err.max():.3f} m, "
                   f"{1e3 * np.mean(secs):.1f} ms/step" + (f"  FAILED {failure}" if failure else ""), flush=True)
         results["paths"].append(row)
