@@ -4,7 +4,8 @@
    substep) against one ``Simulator.step``, on N = 10 (complete graph) and N = 1000 (a random
    3-regular graph), B = 1: the colours (VJP copies per state dimension) and the time.
 2. One step of a rollout as ``Simulator.step``, the ONNX export on onnxruntime (CPU provider,
-   its default threads) and the exported NumPy module, on the same two graphs, float32 and float64.
+   its default threads) and the exported NumPy module, on the same two graphs, float32 and float64,
+   and how far the exports' step is from the Simulator's (largest difference over the largest |x|).
 
 Medians of >= 7 timed calls after two warm-up calls.
 
@@ -76,8 +77,10 @@ def export_rows():
             for dtype in (np.float32, np.float64):
                 m = model(dtype)
                 x0 = np.random.default_rng(0).standard_normal((1, n, 4)).astype(dtype)
-                u = np.zeros((1, 1, n, 2), dtype)
+                u = np.random.default_rng(1).standard_normal((1, 1, n, 2)).astype(dtype)
                 sim = Simulator(m, g)
+                sim.reset(x0)
+                want = sim.step(u[:, 0])
                 sim.reset(x0)
                 session = onnxruntime.InferenceSession(onnx_rollout(m, g, 1).SerializeToString(),
                                                        providers=["CPUExecutionProvider"])
@@ -86,7 +89,12 @@ def export_rows():
                 spec = importlib.util.spec_from_file_location("step", path)
                 module = importlib.util.module_from_spec(spec)
                 spec.loader.exec_module(module)
+                scale = np.abs(want).max()
+                onnx_x = session.run(None, {"x0": x0, "u": u})[0][:, 1]
+                numpy_x = module.rollout(x0, 1, u)[:, 1]
                 rows.append(dict(N=n, dtype=np.dtype(dtype).name, simulator_ms=timed(lambda: sim.step(u[:, 0])),
+                                 onnx_rel_diff=float(np.abs(onnx_x - want).max() / scale),
+                                 numpy_module_rel_diff=float(np.abs(numpy_x - want).max() / scale),
                                  onnx_ms=timed(lambda: session.run(None, {"x0": x0, "u": u})),
                                  numpy_module_ms=timed(lambda: module.rollout(x0, 1, u))))
     return rows
@@ -106,7 +114,8 @@ def main():
               f"Jx nnz {r['jx_nnz']} of {r['jx_entries']}")
     for r in out["export"]:
         print(f"one step N={r['N']:5d} {r['dtype']}: Simulator {r['simulator_ms']:.3f} ms, ONNX {r['onnx_ms']:.3f} ms, "
-              f"NumPy module {r['numpy_module_ms']:.3f} ms")
+              f"NumPy module {r['numpy_module_ms']:.3f} ms; relative difference ONNX {r['onnx_rel_diff']:.1e}, "
+              f"NumPy module {r['numpy_module_rel_diff']:.1e}")
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ import click
 
 from mpnode.data.npz import KEYS
 
-from .main import main
+from .main import claim_outputs, main
 
 HELP = """Convert the NumPy archive FILE (.npz) into a trajectory file (HDF5).
 
@@ -20,6 +20,10 @@ atomically (the complete file or nothing).  The keys:
 An edge (s, r) means node r hears node s.  A graph that lists a node with itself
 allows self-loops.  A bad archive stops with exit status 2 and a message naming
 the key and the fix; nothing is written.
+
+Exit status: 0 written; 2 bad archive or option (also: OUTPUT being written by
+another run); 4 the system refused (OUTPUT could not be written: permission, full
+disk, read-only folder; nothing is left behind).
 """
 
 
@@ -36,6 +40,7 @@ def convert(file, output, dt, system):
     from mpnode.data.npz import read_npz
 
     check_outputs({"--output": output}, [file])
+    claim_outputs({"--output": output})
     traj = read_npz(file, dt=dt, system=system)
     write_trajectories(output, traj)
     s = summarize(traj)

@@ -6,7 +6,7 @@ import click
 
 from mpnode.base.errors import InputError, NumericalError
 
-from .main import main
+from .main import claim_outputs, main
 
 
 class SubstepsType(click.ParamType):
@@ -85,7 +85,7 @@ def check_plot(plot):
 
 
 def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20, substeps=None,
-                        substeps_tol=None, max_substeps=None):
+                        substeps_tol=None, max_substeps=None, warmup=0, truth=None, start="encoder"):
     """Evaluate, and time the reference simulator beside the model when the file names one:
     returns (EvalResult, report dict)."""
     from data_gen.reference import speed_against_reference
@@ -94,9 +94,10 @@ def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20
 
     result = evaluate(model, traj, source=source, allow_dt_mismatch=allow_dt, substeps=substeps,
                       substeps_tol=substeps_tol or stepsize.DEFAULT_TOL,
-                      max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS)
-    report = {"data": source, **result.summary()}
-    if reference_sample > 0:
+                      max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS, warmup=warmup, truth=truth,
+                      start=start)
+    report = {"data": source, **result.summary(), "state_names": traj.attrs.get("state_names")}
+    if reference_sample > 0 and traj.regular:
         report["reference"] = speed_against_reference(model, traj, result, reference_sample)
     return result, report
 
@@ -111,8 +112,16 @@ def format_report(report, model_name):
     lines = [f"{model_name} on {r['data']}: B={r['trajectories']}, T={r['horizon']}, N={r['nodes']}"]
     per = r["nmse_per_step"]
     t = r["horizon"]
-    steps = sorted({1, max(1, t // 4), max(1, t // 2), max(1, 3 * t // 4), t})
-    lines.append(f"  normalised MSE, mean over steps 1..{t}: {_g(r['nmse'])}   last step: {_g(r['nmse_last'])}")
+    first = max(1, r.get("warmup", 0))
+    steps = sorted({max(first, s) for s in (1, t // 4, t // 2, 3 * t // 4, t)})
+    if r.get("warmup"):
+        lines.append(f"  warm-up: each prediction starts from the first {r['warmup']} observations; scored after them")
+    lines.append(f"  normalised MSE, mean over steps {first}..{t}: {_g(r['nmse'])}   last step: {_g(r['nmse_last'])}")
+    if len(r.get("nmse_per_dim", [])) > 1:
+        names = r.get("state_names") or [f"x[{k}]" for k in range(len(r["nmse_per_dim"]))]
+        lines.append("  per dimension: " + ", ".join(f"{n}: {_g(v)}" for n, v in zip(names, r["nmse_per_dim"]))
+                     + (f" (dimension(s) {r['hidden_dims']} never measured in training: not scored)"
+                        if r.get("hidden_dims") else ""))
     lines.append("  per step: " + ", ".join(f"{s}: {_g(per[s])}" for s in steps))
     if r["first_bad_step"] is None:
         lines.append("  blow-ups: none (every prediction finite and inside 10x the data's range)")
@@ -135,17 +144,32 @@ def format_report(report, model_name):
                  f"({r['node_steps_per_second']:.3g} node-steps/s)")
     ref = r.get("reference")
     if ref:
-        lines.append(f"  reference {ref['system']} ({ref['integrator']}), timed on {ref['sample']} trajectories: "
-                     f"{ref['reference_seconds_per_trajectory'] * 1e3:.3g} ms per trajectory "
-                     f"(its nmse against the file: {ref['reference_nmse_vs_file']:.2g})")
-        lines.append(f"  speed against error: learned {ref['learned_seconds_per_trajectory'] * 1e3:.3g} ms per "
-                     f"trajectory (same {ref['sample']} as one batch; "
-                     f"{ref['learned_seconds_per_trajectory_full_batch'] * 1e3:.3g} ms in the full batch) vs "
-                     f"reference {ref['reference_seconds_per_trajectory'] * 1e3:.3g} ms: "
-                     f"{ref['speedup']:.3g}x faster at normalised MSE {_g(r['nmse'])}")
+        lines += format_reference(ref)
     elif "reference" in r:
         lines.append("  reference: the file names no system data_gen can rebuild; not timed")
     return "\n".join(lines)
+
+
+def format_reference(ref):
+    """The reference's lines of the report: which setting reaches the model's error at the least
+    cost (data_gen.reference), what else was tried, and which of the two is faster."""
+    def ms(seconds):
+        return f"{seconds * 1e3:.3g} ms"
+
+    k = ref["sample"]
+    which = ("the cheapest setting that reaches" if ref["reached"]
+             else "no setting tried reaches; the most accurate of them, against")
+    tried = "; ".join(f"{t['setting']}: nMSE {_g(t['nmse'])} in {ms(t['seconds_per_trajectory'])}" for t in ref["tried"])
+    speed = ref["speedup"]
+    verdict = (f"the learned model is {speed:.3g}x faster" if speed >= 1 else
+               f"the learned model is {1 / speed:.3g}x SLOWER: at this error, integrating the true equations is cheaper")
+    chosen = (f"  reference: the true {ref['system']} equations, {which} the model's normalised MSE on the same {k} "
+              f"trajectories ({_g(ref['target_nmse'])}): {ref['integrator']}, "
+              f"{ms(ref['reference_seconds_per_trajectory'])} per trajectory (nMSE {_g(ref['reference_nmse_vs_file'])})")
+    speed_line = (f"  speed against error: learned {ms(ref['learned_seconds_per_trajectory'])} per trajectory (the same "
+                  f"{k} as one batch; {ms(ref['learned_seconds_per_trajectory_full_batch'])} in the full batch) vs "
+                  f"reference {ms(ref['reference_seconds_per_trajectory'])}: {verdict}")
+    return [chosen, f"    tried, each family cheapest first: {tried}", speed_line]
 
 
 @main.command("eval")
@@ -158,11 +182,23 @@ def format_report(report, model_name):
               help="Roll the model out with the file's dt even if it was trained with another.")
 @click.option("--reference-sample", type=click.IntRange(min=0), default=20, show_default=True,
               help="Trajectories the reference simulator is timed on (0: skip the reference).")
+@click.option("--warmup", type=click.IntRange(min=0), default=0, show_default=True, metavar="K",
+              help="Let the model see the first K observations of each trajectory before it predicts: a "
+                   "model with an initial-state encoder estimates from them what was not measured and what "
+                   "noise hides; the error counts the observations after them.")
+@click.option("--start", type=click.Choice(["encoder", "fit"]), default="encoder", show_default=True,
+              help="How the warm-up gives each prediction its start: the model's initial-state estimate "
+                   "(its encoder, or the first observation), or that estimate fitted to the warm-up's "
+                   "observations through the model (a few hundred short rollouts).")
+@click.option("--truth", type=click.Path(dir_okay=False), metavar="CLEAN.h5",
+              help="Score against the clean states of the same trajectories in this file (DATA noisy); "
+                   "default: DATA's own clean truth if it keeps one (mpnode generate --noise), else its "
+                   "observations.")
 @plot_option("truth against prediction for the first trajectories and nodes, per state dimension, and the "
              "error over time with the predictable horizon")
 @substeps_options
-def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, reference_sample, plot, substeps,
-             substeps_tol, max_substeps):
+def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, reference_sample, warmup, start, truth,
+             plot, substeps, substeps_tol, max_substeps):
     """Roll MODEL out from every initial state of DATA and report error and speed.
 
     Error: normalised MSE (squared error / per-dimension variance of DATA's true
@@ -170,9 +206,15 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     step where a prediction became non-finite or left ten times the data's range.
     Predictable horizon: per trajectory the first step whose normalised MSE exceeds
     0.1 and 1.0, reported as the median over trajectories (in steps and time).
-    Speed: rollout wall time and node-steps per second; when DATA names a reference
-    system that data_gen can rebuild from the file's parameters, the reference
-    simulator is timed on a sample of the same initial states (speed against error).
+    Speed: rollout wall time and node-steps per second.  Speed against error, when DATA
+    names a reference system that data_gen can rebuild from the file's parameters: on
+    the first --reference-sample initial states, the true equations at the cheapest
+    setting whose nMSE against DATA is no larger than the model's -- the file's scipy
+    integrator at looser tolerances (1e-3, 1e-4, ... down to the file's own), or classic
+    RK4 with 1, 2, 4, ... steps per dt over the sampled trajectories as one batch,
+    whichever is faster -- timed beside the learned rollout of the same states; the
+    report says which setting, what was tried, and whether the model is faster or slower.
+    A MODEL trained on another system than DATA's is evaluated, with a warning.
 
     Substeps: --substeps auto picks the RK4 substeps per dt by step doubling (the
     difference of the rollouts with s and 2s substeps estimates the error of s;
@@ -181,22 +223,31 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     suggests --substeps N (--json: step_too_large, suggested_substeps).
 
     Exit status: 0 (also when the step is too large: see the report); 2 bad input
-    (missing file, dx/du or dt mismatch); 3 predictions non-finite and --predictions
-    given (nothing written).
+    (missing file, dx/du or dt mismatch, an output being written by another run); 3
+    predictions non-finite and --predictions given (nothing written); 4 the system
+    refused (an output could not be written: permission, full disk, read-only folder;
+    nothing is left behind).
     """
     from mpnode.base.atomic import check_outputs
     from mpnode.data import read_trajectories, write_trajectories
     from mpnode.evaluation.evaluate import predictions_file, substeps_attrs
     from mpnode.model import Model
+    from mpnode.model.provenance import system_mismatch
 
     check_plot(plot)
     outputs = {k: v for k, v in (("--predictions", predictions), ("--plot", plot)) if v}
-    check_outputs(outputs, [model_file, data])
+    check_outputs(outputs, [model_file, data] + ([truth] if truth else []))
+    claim_outputs(outputs)
     model = Model.load(model_file)
     traj = read_trajectories(data)
+    clean = None if truth is None else read_trajectories(truth).x
+    warning = system_mismatch(model, traj.system, data)
+    if warning:
+        click.echo(f"warning: {warning}", err=True)
     result, report = evaluate_and_report(model, traj, data, allow_dt_mismatch, reference_sample, substeps,
-                                         substeps_tol, max_substeps)
+                                         substeps_tol, max_substeps, warmup, clean, start)
     report["model"] = model_file
+    report["warnings"] = [warning] if warning else []
     click.echo(json.dumps(report, indent=2, allow_nan=False) if as_json else format_report(report, model_file))
     if plot:  # before the predictions file, which refuses non-finite predictions: a blow-up gets its figure
         from mpnode.plot import plot_eval
@@ -207,8 +258,9 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     if predictions:
         attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report),
                  **{k: traj.attrs[k] for k in ("state_names",) if k in traj.attrs}}
-        pf = _or_why(lambda: predictions_file(result.predictions, traj.graphs, traj.graph_index, traj.dt, traj.system,
-                                              os.path.abspath(model_file), traj.u, attrs), result.stability)
+        pred = result.predictions[..., :traj.state_dim]  # a model's latent dimensions stay its own
+        pf = _or_why(lambda: predictions_file(pred, traj.graphs, traj.graph_index, traj.dt, traj.system,
+                                              os.path.abspath(model_file), traj.u, attrs, traj.t), result.stability)
         write_trajectories(predictions, pf)
         if not as_json:
             click.echo(f"wrote {predictions}")
@@ -248,23 +300,35 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     non-finite or leaves [mean - 20 std, mean + 20 std] of the training data (the
     model's normalisation) widened to hold the initial states; if more substeps
     avoid that, the RK4 step was too large and a --substeps N is suggested.
+
+    A MODEL trained on another system than SCENE's is rolled out, with a warning.
+    Exit status: 0 written; 2 bad input (also: more trajectories or steps than memory
+    holds, refused before any work; OUTPUT being written by another run); 3 predictions
+    non-finite (nothing written); 4 the system refused (OUTPUT could not be written).
     """
     from dataclasses import replace
 
     from data_gen import initial_states, load_scene
+    from data_gen.scenes import check_scene
     from data_gen.systems import get_system
     from mpnode.base.atomic import check_outputs
     from mpnode.data import write_trajectories
     from mpnode.evaluation.evaluate import predictions_file, simulate, substeps_attrs
     from mpnode.model import Model
+    from mpnode.model.provenance import system_mismatch
 
     check_plot(plot)
     check_outputs({"--output": output, **({"--plot": plot} if plot else {})}, [model_file, scene])
+    claim_outputs({"--output": output, "--plot": plot})
     model = Model.load(model_file)
     s = load_scene(scene)
     s = replace(s, **{k: v for k, v in dict(trajectories=trajectories, horizon=horizon, seed=seed).items()
                       if v is not None})
+    check_scene(s, scene)  # the options too (the memory B and T need), before any work
     system = get_system(s.system)
+    warning = system_mismatch(model, s.system, scene)
+    if warning:
+        click.echo(f"warning: {warning}", err=True)
     if system.state_dim != model.spec.state_dim:
         raise InputError(scene, "system", f"{s.system} has {system.state_dim} state dimensions per node but the "
                          f"model has {model.spec.state_dim}", "a scene of the system the model learned")

@@ -1,7 +1,9 @@
 """`mpnode export MODEL -o OUT.onnx|OUT.py`: a model on one graph as a file that runs without mpnode."""
+import functools
+
 import click
 
-from .main import main
+from .main import claim_outputs, main
 
 
 @main.command("export")
@@ -24,14 +26,20 @@ def export_cmd(model_file, output, graph_file, nodes, steps):
     OUT.py    a Python module needing numpy alone, weights inside:
               rollout(x0, steps, u=None) returns what Model.rollout returns.
 
-    What is exported: the model's rollout on that graph (its normalisation, RK4 substeps,
-    messages starting at 0), N and, for ONNX, T fixed.  What is not: training, gradients,
-    step Jacobians, other graphs or sizes (export again), a step that continues from given
-    messages (mpnode.Simulator does that).  The ONNX aggregation is a dense (N, N) MatMul:
-    meant for graphs up to a few thousand nodes.
+    What is exported: the model's rollout on that graph, every dt, from a given full state
+    x0 (its normalisation, RK4 substeps, messages starting at 0), N and, for ONNX, T fixed.
+    What is not: training, gradients, step Jacobians, other graphs or sizes (export again),
+    outputs at times of one's own, a model's initial-state encoder (estimate x0 from
+    observations with Model.initial_state first; a model with latent dimensions takes
+    them in x0 too), a step that continues from given messages (mpnode.Simulator does
+    that).  The ONNX aggregation is a dense (N, N) MatMul: meant for graphs up to a few
+    thousand nodes.
 
-    Exit status: 0 written; 2 bad model, graph, option or output path (nothing written).
+    Exit status: 0 written; 2 bad model, graph, option or output path (also: OUT being
+    written by another run; nothing written); 4 the system refused (OUT could not be
+    written: permission, full disk, read-only folder; nothing is left behind).
     """
     from mpnode.export.files import export_file
 
-    click.echo(export_file(model_file, output, graph_file, nodes, steps))
+    claim = functools.partial(claim_outputs, {"--output": output})
+    click.echo(export_file(model_file, output, graph_file, nodes, steps, claim=claim))

@@ -19,7 +19,8 @@ def inspect(file, as_json):
     (mpnode, l2s or node), sizes, aggregation, integration settings, parameter count
     and the attributes training recorded (data, recipe, epoch, validation loss).
     A file that breaks a rule is reported as "Error: FILE: FIELD: problem (expected ...)"
-    with exit status 2.
+    with exit status 2; a file the system will not let us read (permission, an I/O
+    error) with exit status 4.
     """
     from mpnode.base.h5 import file_format
     from mpnode.data import read_trajectories, summarize
@@ -58,6 +59,23 @@ def _model_text(file, s):
     return "\n".join(line.rstrip() for line in lines)
 
 
+def _sampling_text(m):
+    """How the data were observed, for people: regular or not, the gaps, what was observed."""
+    steps = f"{m['steps_min']}" if m["steps_min"] == m["steps_max"] else f"{m['steps_min']} to {m['steps_max']}"
+    kind = "regular (one dt)" if m["regular"] else (f"irregular: gaps {m['gap_min']:.4g} smallest, "
+                                                      f"{m['gap_median']:.4g} median, {m['gap_max']:.4g} largest")
+    per_dim = ", ".join(f"{v:.0%}" for v in m["observed_per_dim"])
+    per_node = ", ".join(f"{v:.0%}" for v in m["observed_per_node"][:12]) + (
+        ", ..." if len(m["observed_per_node"]) > 12 else "")
+    lines = [f"sampling:    {kind}; {steps} steps per trajectory",
+             f"observed:    per dimension {per_dim}; per node {per_node}"]
+    if m["unmeasured_dims"]:
+        lines.append(f"  never measured: dimension(s) {m['unmeasured_dims']} (a model carries them as hidden states)")
+    if m["truth"]:
+        lines.append("  the clean truth behind the observations is kept (mpnode eval scores against it)")
+    return lines
+
+
 def _text(file, s):
     """The summary as aligned 'label: value' lines for people."""
     lines = [
@@ -73,6 +91,7 @@ def _text(file, s):
         used = info["trajectories"]
         lines.append(f"  graphs/{g}: {info['nodes']} nodes, {info['edges']} directed edges{loops}, "
                      f"used by {used} " + ("trajectory" if used == 1 else "trajectories"))
+    lines += _sampling_text(s["sampling"])
     for group in ("params", "aux"):
         lines.append(f"{group + ':':<13}" + ("" if s[group] else "none"))
         for name, d in s[group].items():

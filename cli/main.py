@@ -1,7 +1,10 @@
 """Entry point of the `mpnode` command: a click group whose commands live in sibling modules.
 
-Bad input anywhere below surfaces as `mpnode.base.errors.InputError`; this group turns it
-into a one-paragraph message on stderr and exit status 2, never a traceback.
+This group is the one place where failures become messages: each is a one-paragraph message
+on stderr, never a traceback, with its exit status (EXIT_STATUS): bad input anywhere below
+(`mpnode.base.errors.InputError`) 2; a computation that blew up (NumericalError) 3; the
+system refusing (an OSError: a full disk, a read-only folder, a missing permission, a file in
+use; memory running out; a library that cannot be imported) 4.
 """
 import sys
 
@@ -9,17 +12,55 @@ import click
 
 from mpnode.base.errors import InputError, NumericalError
 
+#: the exit statuses of the failures every command shares (each command's --help lists its own)
+EXIT_STATUS = {"input": 2, "numerical": 3, "system": 4}
+
 
 class _Group(click.Group):
     def invoke(self, ctx):
+        from mpnode.base.oserrors import explain
+
         try:
             return super().invoke(ctx)
         except InputError as e:
-            click.echo(f"Error: {e}", err=True)
-            sys.exit(2)
+            _fail(e, "input")
         except NumericalError as e:
-            click.echo(f"Error: {e}", err=True)
-            sys.exit(3)
+            _fail(e, "numerical")
+        except BrokenPipeError:  # the reader of our output went away (`mpnode eval ... | head`): not a failure
+            _quiet_exit()
+        except OSError as e:
+            _fail(explain(e), "system")
+        except MemoryError:
+            _fail("the system ran out of memory (ask for less: fewer trajectories, a shorter horizon, a smaller "
+                  "--hidden or --batch-size; or close other programs)", "system")
+        except ImportError as e:
+            missing = getattr(e, "name", None)
+            _fail(f"{e} (mpnode needs it: pip install {missing.split('.')[0]})" if missing else e, "system")
+
+
+def _quiet_exit():
+    """Stop without a word: nobody reads standard output any more (its pipe closed)."""
+    import os
+
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's own flush at exit must not fail
+    sys.exit(0)
+
+
+def _fail(message, kind):
+    click.echo(f"Error: {message}", err=True)
+    sys.exit(EXIT_STATUS[kind])
+
+
+def claim_outputs(outputs):
+    """Claim the files this command writes ({flag: path}) until it ends (a lock beside each:
+    mpnode.base.locks), so that a second command writing one stops with exit status 2 naming this one."""
+    from mpnode.base.locks import claim
+
+    ctx = click.get_current_context()
+    command = " ".join(["mpnode", *sys.argv[1:]]) if sys.argv and "mpnode" in sys.argv[0] else ctx.command_path
+    for flag, path in outputs.items():
+        if path:
+            ctx.with_resource(claim(path, command, flag))
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})

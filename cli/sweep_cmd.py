@@ -3,7 +3,7 @@ import sys
 
 import click
 
-from .main import main, scheduler_option
+from .main import claim_outputs, main, scheduler_option
 
 
 @main.command("sweep")
@@ -24,16 +24,34 @@ def sweep_cmd(sweep_file, output, workers, scheduler):
     continues an interrupted sweep.  A run that fails is reported in the summary and the
     others go on.
 
+    Every check a run can make before training is made before the first run starts:
+    every data and test file is read, the test files must fit the models (dx, du, dt),
+    the data must be learnable and the trainings fit in memory, and no input may lie
+    where the sweep writes (DIR/runs/, DIR/summary.*).
+
     Exit status: 0 every run finished; 1 some failed (see the summary); 2 bad sweep file
-    or option; 130 interrupted (rerun to continue).
+    or option (also: DIR being written by another sweep); 4 the system refused (DIR
+    cannot be written: permission, full disk, read-only folder); 130 interrupted (rerun
+    to continue).
     """
     import os
 
+    from mpnode.base.atomic import check_writable
+    from mpnode.base.oserrors import file_error
     from mpnode.runs.executors import open_executor
+    from mpnode.runs.preflight import check_out_folder
     from mpnode.runs.sweep import FINISHED, load_finished, read_sweep, run_sweep
 
     sweep = read_sweep(sweep_file)
-    os.makedirs(output, exist_ok=True)
+    for warning in sweep.warnings:
+        click.echo(f"warning: {warning}", err=True)
+    check_out_folder(sweep, output)
+    try:
+        os.makedirs(output, exist_ok=True)
+    except OSError as e:
+        raise file_error(e, output, "create the folder") from None
+    check_writable(os.path.join(output, "summary.csv"))
+    claim_outputs({"--output": output})
     with open_executor(scheduler, workers, one_thread=True) as farm:
         where = f"{farm.workers} Dask worker thread(s)" if farm.is_dask else f"{workers} local process(es)"
         click.echo(f"{len(sweep.runs)} run(s) of {sweep_file} on {where}", err=True)

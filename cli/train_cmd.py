@@ -1,4 +1,5 @@
 """`mpnode train DATA... -o MODEL` and `mpnode finetune MODEL DATA... -o NEW`: learn a model."""
+import contextlib
 import os
 import sys
 import tempfile
@@ -13,7 +14,7 @@ from mpnode.training import TrainConfig
 from mpnode.training.recipes import AUTO_ALL, FINETUNE_AUTO
 
 from .eval_cmd import check_plot, plot_option
-from .main import main
+from .main import claim_outputs, main
 
 #: `mpnode train SCENE` (a scene instead of files): trajectories generated and the default time budget
 SCENE_TRAJECTORIES = 300
@@ -177,19 +178,17 @@ def run_with_progress(epochs, time_limit, output, call, plot=None):
 
     state = {"bar": None}
 
-    def progress(record):
-        done = record["epoch"] / epochs if epochs else 1.0
-        if time_limit:
-            done = max(done, record["elapsed"] / time_limit)
-        bar = state["bar"]
-        bar.update(max(0, min(BAR, round(done * BAR)) - bar.pos), record)
+    with contextlib.ExitStack() as stack:
+        def progress(record):  # the bar starts with the first epoch: a run refused before it prints nothing
+            if state["bar"] is None:
+                state["bar"] = stack.enter_context(click.progressbar(
+                    length=BAR, label="training", file=sys.stderr, item_show_func=progress_line, show_eta=True))
+            bar = state["bar"]
+            bar.update(max(0, round(done_fraction(record, epochs, time_limit) * BAR) - bar.pos), record)
 
-    def notify(msg):
-        click.echo(("\n" if state["bar"] is not None else "") + msg, err=True)
+        def notify(msg):
+            click.echo(("\n" if state["bar"] is not None else "") + msg, err=True)
 
-    with click.progressbar(length=BAR, label="training", file=sys.stderr, item_show_func=progress_line,
-                           show_eta=True) as bar:
-        state["bar"] = bar
         result = call(progress=progress, notify=notify)
     click.echo(f"{result.status}: {result.message}")
     best = (f"validation normalised MSE {_fmt(result.val_nmse)}" if result.validation
@@ -209,6 +208,15 @@ def run_with_progress(epochs, time_limit, output, call, plot=None):
 
 #: steps of the training progress bar (a fraction of the epochs or of the time limit)
 BAR = 1000
+
+
+def done_fraction(record, epochs, time_limit):
+    """How much of the run an epoch's log record has done, in [0, 1]: of the epochs, or of the
+    time limit (seconds) when that ends the run first."""
+    done = record["epoch"] / epochs if epochs else 1.0
+    if time_limit:
+        done = max(done, record["elapsed"] / time_limit)
+    return min(done, 1.0)
 
 
 def progress_line(record):
@@ -265,6 +273,14 @@ def print_validation(result):
 @click.option("--self-messages", is_flag=True,
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")
 @click.option("--dtype", type=click.Choice(DTYPES), default=MODEL_DEFAULT.dtype, show_default=True)
+@click.option("--encoder-window", type=click.IntRange(min=0), metavar="W",
+              help="Learn, with the model, an initial-state encoder that estimates each trajectory's whole "
+                   "starting state from its first W observations: values nobody measured (a dimension that is "
+                   "NaN throughout the data is such a hidden state) and noise on the measured ones; 0: start "
+                   "from the first observation as it is.  Default: the recipe's.")
+@click.option("--latent-dims", type=click.IntRange(min=0), metavar="K",
+              help="Give each node K more state dimensions than the data have, never observed: room for what "
+                   "the data do not show (the initial-state encoder estimates where they start).")
 @recipe_option("the MP-NODE paper's: mean aggregation, plateau schedule, batch 128")
 @click.option("--trajectories", type=click.IntRange(min=2), default=SCENE_TRAJECTORIES, show_default=True,
               help="Only when DATA is a scene: trajectories to generate.")
@@ -287,18 +303,24 @@ def train_cmd(data, trajectories, recipe, **o):
 
     Chaotic systems: --curriculum 5,10,full trains on short windows first.
 
-    Exit status: 0 trained; 2 bad input; 3 training diverged (the best finite model is
-    kept); 130 interrupted (continue with --resume).
+    Exit status: 0 trained; 2 bad input (also: OUTPUT is being written by another run,
+    or --resume with a flag that contradicts the run); 3 training diverged (the best finite
+    model is kept); 4 the system refused (a file could not be written, e.g. a full disk:
+    OUTPUT and its checkpoint stay a consistent pair to --resume from; memory; numba
+    missing, checked before anything is written); 130 interrupted (continue with --resume).
     """
     from mpnode import runs
 
+    runs.require_numba()
     output, plot = o["output"], o["plot"]
     scene = _scene_of(data)
     if scene is None:
         check_outputs(output, data, plot=plot)
+        claim_outputs({"--output": output})
     else:
         data = (output + ".data.h5",)
         check_outputs(output, [scene], data[0], plot=plot)
+        claim_outputs({"--output": output})
         if not (o["resume"] and os.path.exists(data[0])):
             _generate(scene, data[0], trajectories, seed=o["seed"])
     options = given_options(o)
@@ -365,12 +387,15 @@ def finetune_cmd(model_file, data, refit_norm, recipe, **o):
 
     Starts from exactly MODEL's weights (its kind, dimensions, dt, message settings and,
     by default, its normalisation), e.g. a Lorenz3 model becomes a Lorenz10 model with a
-    few dozen Lorenz10 trajectories.  Same flags and files as `mpnode train`.
+    few dozen Lorenz10 trajectories.  Same flags, files and exit statuses as `mpnode train`;
+    a MODEL trained on another system than DATA's is used, with a warning.
     """
     from mpnode import runs
 
+    runs.require_numba()
     output = o["output"]
     check_outputs(output, [model_file, *data], plot=o["plot"])
+    claim_outputs({"--output": output})
     datasets = runs.read_all(data)
     resume, options = o["resume"], given_options(o)
     result = run_with_progress(o["epochs"], o["time_limit"], output, lambda **kw: runs.finetune(

@@ -34,6 +34,7 @@ import os
 from dataclasses import dataclass, field
 
 from mpnode.base.errors import InputError
+from mpnode.base.memory import check_memory
 from mpnode.base.tomlfile import load_toml
 
 from .graphs import (
@@ -49,6 +50,9 @@ from .systems import get_system
 
 #: the scipy solve_ivp methods a scene may name
 INTEGRATORS = ("RK23", "RK45", "DOP853", "Radau", "BDF", "LSODA")
+#: memory per state entry of a scene's trajectories: float64 states, and as much again for the
+#: checks and copies on the way to the file (mpnode.base.memory)
+BYTES_PER_ENTRY = 16
 
 
 @dataclass(frozen=True)
@@ -151,6 +155,11 @@ def check_scene(scene, source):
             raise InputError(source, key, f"is {value}", "a finite number > 0")
     if not math.isfinite(scene.dt * scene.horizon):
         raise InputError(source, "dt", f"times horizon {scene.horizon} overflows", "a finite duration")
+    system.check_dt(scene.params, scene.dt, source)
+    entries = scene.trajectories * (scene.horizon + 1) * scene.graph.n_nodes * system.state_dim
+    check_memory(entries * BYTES_PER_ENTRY, source, "trajectories", f"B = {scene.trajectories} trajectories of "
+                 f"T = {scene.horizon} steps on {scene.graph.n_nodes} nodes", "fewer trajectories (-B, --trajectories) "
+                 "or a shorter horizon (-T, --horizon)")
     for key, value in (("seed", scene.seed), ("system_seed", scene.system_seed)):
         if value < 0:  # numpy's SeedSequence takes non-negative integers only
             raise InputError(source, key, f"is {value}", "an integer >= 0")

@@ -3,7 +3,10 @@
 Every right-hand side ``f(t, y, ...)`` takes the flat state of ONE trajectory,
 ``y : ndarray, shape (N*dx,)`` laid out node after node (``y.reshape(N, dx)``), and
 returns ``dy/dt`` of the same shape, so it plugs into ``scipy.integrate.solve_ivp``
-as is.  Nothing here knows about learning, files or scenes.
+as is; the uncontrolled ones also take K states at once as the columns of ``y`` (N*dx, K)
+(the batched reference of data_gen.reference).  Each system has a time scale (`System.time_scale`,
+docs/systems.md#time-scales) that saved steps are checked against (`check_dt`).  Nothing here
+knows about learning, files or scenes.
 """
 from dataclasses import dataclass
 from functools import partial
@@ -70,10 +73,11 @@ def kuramoto_rhs(t, y, omega, K, A):
     cos(theta_i) (A sin theta)_i - sin(theta_i) (A cos theta)_i (sin(a-b) expanded), so the
     neighbour sum is two sparse products.  y : shape (3N,), omega : shape (3,), A : sparse (N, N).
     """
-    theta = y.reshape(-1, 3)
+    columns = 1 if y.ndim == 1 else y.shape[1]
+    theta = y.reshape(-1, 3 * columns)  # row i: node i's phases (of every column)
     s, c = np.sin(theta), np.cos(theta)
     coupling = c * (A @ s) - s * (A @ c)
-    return (omega + K * coupling).ravel()
+    return (np.repeat(omega, columns) + K * coupling).reshape(y.shape)
 
 
 def adjacency(graph):
@@ -115,6 +119,8 @@ class System:
         progress=) -> Trajectories, which then owns initial states, controls and aux data
     state_names : one name (with its unit where there is one) per state dimension; files
         carry them as the attribute ``state_names`` and the figures label their axes with them
+    time_scale : (scalar parameters) -> the time over which a trajectory changes appreciably
+        (docs/systems.md#time-scales); saved steps longer than MAX_DT_TIME_SCALES of it are refused
     """
 
     name: str
@@ -130,6 +136,7 @@ class System:
     samplers: tuple = ("uniform",)
     generator: Callable = None
     state_names: tuple = ()
+    time_scale: Callable = lambda p: 1.0
 
     def check_graph(self, graph, source, field):
         """Raise InputError unless ``graph`` is one this system's physics is defined on."""
@@ -140,6 +147,21 @@ class System:
             if not graph.equals(Graph.complete(n)):
                 raise InputError(source, field, f"{self.name} needs every node coupled to every other",
                                  "a complete graph without self-loops")
+
+
+    def check_dt(self, params, dt, source, field="dt"):
+        """InputError unless saved states ``dt`` apart can be integrated and learned: at most
+        MAX_DT_TIME_SCALES time scales (a larger dt makes the integrator take ever more steps per
+        saved state -- 1e300 never ends -- and leaves nothing of one state in the next)."""
+        scale = self.time_scale({**self.defaults, **params})
+        if dt > MAX_DT_TIME_SCALES * scale:
+            raise InputError(source, field, f"is {dt:g}, {dt / scale:.3g} times the time scale of {self.name} "
+                             f"({scale:.3g}: docs/systems.md#time-scales); states that far apart cannot be "
+                             "integrated in reasonable time, nor learned from", f"dt <= {MAX_DT_TIME_SCALES * scale:.3g}")
+
+
+#: the longest saved step, in time scales of the system (System.check_dt)
+MAX_DT_TIME_SCALES = 10
 
 
 def _pendulum(p, graph):
@@ -172,19 +194,22 @@ SYSTEMS = {
         System("coupled_pendulum", 2, dict(m=1.0, l=1.5, k=2.0, g=9.81),
                low=(-np.pi / 4, -0.5), high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_pendulum,
                guard=pendulum_guard, n_nodes=2, complete=True,
-               state_names=("angle (rad)", "angular velocity (rad/s)")),
+               state_names=("angle (rad)", "angular velocity (rad/s)"),
+               time_scale=lambda p: 2 * np.pi * np.sqrt(abs(p["l"] / p["g"])) if p["g"] else np.inf),
         # rhs: f(t, y, u) with the horizontal forces u (2,) on the bobs, held (see forced_pendulum.py)
         System(forced_pendulum.SYSTEM, 2, dict(forced_pendulum.PARAMS), low=(-np.pi / 4, -0.5),
                high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_forced_pendulum, guard=pendulum_guard, n_nodes=2,
                complete=True, generator=forced_pendulum.generate,
-               state_names=("angle (rad)", "angular velocity (rad/s)")),
+               state_names=("angle (rad)", "angular velocity (rad/s)"),
+               time_scale=lambda p: 2 * np.pi * np.sqrt(abs(p["l"] / p["g"])) if p["g"] else np.inf),
         System("lorenz", 3, dict(sigma=10.0, rho=28.0, beta=8.0 / 3.0, coupling=0.01),
                low=(-1.0,) * 3, high=(1.0,) * 3,
                draw=lambda p, n, rng: {"H": lorenz_coupling(n, p["coupling"], rng)}, rhs=_lorenz,
                complete=True, state_names=("x", "y", "z")),
         System("gene", 1, dict(b=1.0, f=1.0, h=2.0),
                low=(0.0,), high=(50.0,), draw=_nothing_drawn, rhs=_gene,
-               samplers=("uniform", "hotspots"), state_names=("expression level",)),
+               samplers=("uniform", "hotspots"), state_names=("expression level",),
+               time_scale=lambda p: 1.0 / min(1.0, abs(p["b"])) if p["b"] else np.inf),
         System("kuramoto", 3, dict(K=1.0 / 3.0),
                low=(-1.0,) * 3, high=(1.0,) * 3,
                draw=lambda p, n, rng: {"omega": kuramoto_frequencies(rng)}, rhs=_kuramoto,

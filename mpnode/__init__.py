@@ -16,9 +16,9 @@ _LAZY = {
     "Simulator": "mpnode.model.simulator",
     "loss_and_grad": "mpnode.training.losses",
     "Trajectories": "mpnode.data.trajectories",
-    "read_trajectories": "mpnode.data.trajectories",
-    "write_trajectories": "mpnode.data.trajectories",
-    "validate_trajectories": "mpnode.data.trajectories",
+    "read_trajectories": "mpnode.data.files",
+    "write_trajectories": "mpnode.data.files",
+    "validate_trajectories": "mpnode.data.rules",
 }
 
 

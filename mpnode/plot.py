@@ -16,6 +16,7 @@ notebook's feet.  Each function returns the Figure and, given ``out``, writes it
 """
 import functools
 import os
+import warnings
 
 import numpy as np
 
@@ -116,7 +117,7 @@ def dimension_names(attrs, dx):
 def _limits(truth, pred):
     """y-limits showing the truth whole and a prediction as far as twice the truth's range:
     a prediction that blows up leaves the panel instead of flattening the truth."""
-    lo, hi = float(np.min(truth)), float(np.max(truth))
+    lo, hi = float(np.nanmin(truth)), float(np.nanmax(truth))
     r = max(hi - lo, 1e-12 * max(abs(lo), abs(hi), 1.0))
     finite = pred[np.isfinite(pred)]
     plo = max(float(finite.min()), lo - r) if finite.size else lo
@@ -126,23 +127,27 @@ def _limits(truth, pred):
     return lo - pad, hi + pad
 
 
-def _state_grid(fig, spec, x, dt, names, bs, ns, ds, truth=None):
+def _state_grid(fig, spec, x, dt, names, bs, ns, ds, truth=None, times=None, dots=None):
     """Panels (state dimension x trajectory) of nodes ``ns``: x dashed over the truth when
-    given, solid otherwise; one colour per node.  Returns the axes (rows, columns)."""
-    t = np.arange(x.shape[1]) * float(dt)
+    given, solid otherwise, and the observations ``dots`` (NaN: not observed) as dots; one colour
+    per node; time from ``times`` (B, T+1) or every dt.  Returns the axes (rows, columns)."""
     axes = np.empty((len(ds), len(bs)), dtype=object)
     with np.errstate(invalid="ignore"):
         for c, b in enumerate(bs):
+            t = np.arange(x.shape[1]) * float(dt) if times is None else times[b]
             for r, d in enumerate(ds):
                 ax = fig.add_subplot(spec[r, c], sharex=axes[0, 0] if r or c else None)
                 axes[r, c] = ax
                 for i in ns:
                     if truth is not None:
                         ax.plot(t, truth[b, :, i, d], color=f"C{i % 10}", lw=1.8)
+                    if dots is not None:
+                        ax.plot(t, dots[b, :, i, d], ls="none", marker="o", ms=3.5, color=f"C{i % 10}", alpha=0.7)
                     ax.plot(t, np.where(np.isfinite(x[b, :, i, d]), x[b, :, i, d], np.nan), color=f"C{i % 10}",
                             lw=1.8, ls="--" if truth is not None else "-")
-                if truth is not None:
-                    ax.set_ylim(*_limits(truth[b][:, list(ns), d], x[b][:, list(ns), d]))
+                reference = truth if truth is not None else dots
+                if reference is not None and np.isfinite(reference[b][:, list(ns), d]).any():
+                    ax.set_ylim(*_limits(reference[b][:, list(ns), d], x[b][:, list(ns), d]))
                 if r == 0:
                     ax.set_title(f"trajectory {b}")
                 if c == 0:
@@ -154,13 +159,15 @@ def _state_grid(fig, spec, x, dt, names, bs, ns, ds, truth=None):
     return axes
 
 
-def _node_legend(ax, ns, with_truth):
+def _node_legend(ax, ns, with_truth, with_dots=False):
     from matplotlib.lines import Line2D
 
     handles = [Line2D([], [], color=f"C{i % 10}", lw=2, label=f"node {i}") for i in ns]
     if with_truth:
         handles += [Line2D([], [], color="0.25", lw=1.8, label="truth"),
                     Line2D([], [], color="0.25", lw=1.8, ls="--", label="prediction")]
+    if with_dots:
+        handles += [Line2D([], [], color="0.25", ls="none", marker="o", ms=4, label="observations")]
     ax.legend(handles=handles, loc="best", ncol=2 if len(handles) > 4 else 1, framealpha=0.85)
 
 
@@ -190,25 +197,37 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
     pred = np.asarray(result.predictions, dtype=np.float64)
     bs, ns, ds = _selection(x.shape, trajectories, nodes, dims)
     names = dimension_names(truth.attrs, x.shape[3])
+    as_lines = truth.complete and truth.truth is None  # else: the observations as dots, the truth (if any) as lines
+    clean = x if as_lines else (None if truth.truth is None else np.asarray(truth.truth, dtype=np.float64))
+    times = None if truth.regular else truth.times()
     fig = _figure()
     spec = fig.add_gridspec(len(ds), len(bs) + 1, width_ratios=[1] * len(bs) + [1.3])
-    axes = _state_grid(fig, spec, pred, truth.dt, names, bs, ns, ds, truth=x)
-    _node_legend(axes[0, 0], ns, with_truth=True)
-    _error_panel(fig.add_subplot(spec[:, -1]), x, pred, truth.dt, result)
-    head = title or f"{truth.system}: prediction against truth"
-    fig.suptitle(f"{head}: normalised MSE {result.nmse:.3g} (mean over steps 1..{x.shape[1] - 1})"
+    axes = _state_grid(fig, spec, pred, truth.dt, names, bs, ns, ds, truth=clean, times=times,
+                       dots=None if as_lines else x)
+    _node_legend(axes[0, 0], ns, with_truth=clean is not None, with_dots=not as_lines)
+    scored = np.array(x if clean is None else clean)
+    scored[..., list(result.hidden_dims or [])] = np.nan  # a state never measured in training has no units to compare
+    for d in result.hidden_dims or []:
+        if d in ds:
+            axes[list(ds).index(d), 0].set_ylabel(f"{names[d]}\n(never measured: the model's hidden state)")
+    _error_panel(fig.add_subplot(spec[:, -1]), scored, pred, truth.dt, result, times)
+    head = title or f"{truth.system}: prediction against {'truth' if clean is not None else 'observations'}"
+    first = max(1, result.warmup)
+    fig.suptitle(f"{head}: normalised MSE {result.nmse:.3g} (mean over steps {first}..{x.shape[1] - 1})"
                  f"{_shown(names, ds, x.shape[3])}")
     return _finish(fig, out)
 
 
-def _error_panel(ax, x, pred, dt, result):
-    """Normalised MSE over time (log scale), horizon thresholds and crossings, first blow-up."""
-    t = np.arange(x.shape[1]) * float(dt)
-    with np.errstate(invalid="ignore"):
-        own = normalised_sq_error(pred, x).mean(axis=(2, 3))[:, 1:]  # (B, T): each trajectory's
+def _error_panel(ax, x, pred, dt, result, times=None):
+    """Normalised MSE over time (log scale), horizon thresholds and crossings, first blow-up.
+    With each trajectory's own times, a step is drawn at its mean time."""
+    t = np.arange(x.shape[1]) * float(dt) if times is None else np.nanmean(times, axis=0)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a step with nothing observed is a gap
+        own = np.nanmean(normalised_sq_error(pred, x), axis=(2, 3))[:, 1:]  # (B, T): each trajectory's
         mean = np.asarray(result.nmse_per_step, dtype=np.float64)[1:]
         if own.shape[0] >= 3:
-            lo, med, hi = np.percentile(own, [10, 50, 90], axis=0)
+            lo, med, hi = np.nanpercentile(own, [10, 50, 90], axis=0)
             ax.fill_between(t[1:], _loggable(lo), _loggable(hi), color="0.5", alpha=0.25,
                             label="10-90 % of trajectories")
             ax.plot(t[1:], _loggable(med), color="0.3", lw=1.2, ls=":", label="median trajectory")

@@ -189,22 +189,28 @@ lr = 1e-4
 
 @needs_dask
 def test_a_failing_run_is_reported_and_the_sweep_goes_on(data, farm, tmp_path):
-    sweep = sweep_file(data, "fail.toml", """
-data = ["train.h5"]
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "spoilt.h5").write_bytes((data / "train.h5").read_bytes())
+    sweep = sweep_file(tmp_path / "in", "fail.toml", f"""
+data = ["{data / 'train.h5'}"]
 [train]
 epochs = 2
 [[run]]
 name = "good"
 [[run]]
 name = "broken"
-data = ["bad.h5"]
+data = ["spoilt.h5"]
 [[run]]
 name = "child"
 from = "broken"
 """)
+    # every file is checked when the sweep is read (a bad one stops it before any run: test_failures.py);
+    # what can still fail is what changes afterwards: this file, spoilt once the sweep has started
+    (tmp_path / "in" / "spoilt.h5").write_bytes((data / "bad.h5").read_bytes())
+    tmp_path = tmp_path / "out"
     records = run_sweep(sweep, tmp_path, farm)
     assert records["good"]["status"] == "completed"
-    assert records["broken"]["status"] == "failed" and "bad.h5" in records["broken"]["error"]
+    assert records["broken"]["status"] == "failed" and "spoilt.h5" in records["broken"]["error"]
     assert records["child"]["status"] == "skipped"
     md = (tmp_path / "summary.md").read_text()
     assert "| broken | failed |" in md and "| good | completed |" in md
@@ -242,17 +248,31 @@ seed = [0, 1]
 def test_sweep_command_on_the_local_pool(data, tmp_path):
     """The command without Dask: a failing run gives exit status 1 and a summary row; a rerun
     redoes only the failed run."""
-    (data / "cli.toml").write_text('data = ["train.h5"]\n[train]\nepochs = 2\n'
-                                   '[[run]]\nname = "good"\n[[run]]\nname = "broken"\ndata = ["bad.h5"]\n')
+    (tmp_path / "spoilt.h5").write_bytes((data / "train.h5").read_bytes())
+    (tmp_path / "cli.toml").write_text(f'data = ["{data / "train.h5"}"]\n[train]\nepochs = 2\n'
+                                       '[[run]]\nname = "good"\n[[run]]\nname = "broken"\ndata = ["spoilt.h5"]\n')
     out = tmp_path / "out"
-    args = ["sweep", str(data / "cli.toml"), "-o", str(out), "--scheduler", "none", "--workers", "2"]
+    args = ["sweep", str(tmp_path / "cli.toml"), "-o", str(out), "--scheduler", "none", "--workers", "1"]
+
+    def spoil():  # once the files are checked (the summary is written next): "broken" runs after "good"
+        deadline = time.monotonic() + 300
+        while not (out / "summary.csv").exists() and time.monotonic() < deadline:
+            time.sleep(0.005)
+        (tmp_path / "spoilt.h5").write_bytes((data / "bad.h5").read_bytes())
+
+    spoiler = threading.Thread(target=spoil)
+    spoiler.start()
     first = CliRunner().invoke(main, args)
+    spoiler.join()
     assert first.exit_code == 1, first.output
     rows = (out / "summary.csv").read_text().splitlines()
     assert rows[1].startswith("good,completed,") and rows[2].startswith("broken,failed,")
     stamp = (out / "runs" / "good" / "model.h5").stat().st_mtime_ns
+    (tmp_path / "spoilt.h5").write_bytes((data / "train.h5").read_bytes())  # mended: the rerun redoes "broken" only
     again = CliRunner().invoke(main, args)
-    assert again.exit_code == 1 and (out / "runs" / "good" / "model.h5").stat().st_mtime_ns == stamp
+    assert again.exit_code == 0, again.output
+    assert (out / "runs" / "good" / "model.h5").stat().st_mtime_ns == stamp
+    assert (out / "summary.csv").read_text().splitlines()[2].startswith("broken,completed,")
 
 
 @needs_dask

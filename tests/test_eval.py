@@ -1,5 +1,6 @@
 """mpnode.evaluation.evaluate and `mpnode eval`: error metrics, blow-ups, predictions, mismatches, reference timing."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -146,6 +147,29 @@ def test_cli_eval_times_the_reference_simulator(tmp_path):
     assert res.exit_code == 0, res.output
     ref = json.loads(res.output)["reference"]
     assert ref["sample"] == 3 and ref["reference_seconds_per_trajectory"] > 0 and ref["speedup"] > 0
-    assert ref["reference_nmse_vs_file"] < 1e-12  # the same integrator rebuilds the file
+    # like with like: the chosen setting reaches the model's error on the same trajectories, and is the
+    # fastest of the settings tried that do; each family is tried cheapest first up to its first that reaches
+    assert ref["reached"] and ref["reference_nmse_vs_file"] <= ref["target_nmse"] == ref["learned_nmse"]
+    reaching = [t for t in ref["tried"] if t["nmse"] <= ref["target_nmse"]]
+    assert ref["reference_seconds_per_trajectory"] == min(t["seconds_per_trajectory"] for t in reaching)
+    for family in ("scipy", "rk4"):
+        tried = [t for t in ref["tried"] if t["family"] == family]
+        assert all(t["nmse"] > ref["target_nmse"] for t in tried[:-1]) and tried[-1]["nmse"] <= ref["target_nmse"]
     res = CliRunner().invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "p.h5"), "--reference-sample", "2"])
     assert "speed against error" in res.output
+    assert re.search(r"speed against error: .* the learned model is [0-9.]+x (faster|SLOWER: at this error, "
+                     r"integrating the true equations is cheaper)$", res.output, re.M), res.output
+
+
+def test_the_reference_at_the_files_own_setting_rebuilds_the_file():
+    from dataclasses import replace
+
+    from data_gen import generate, load_scene
+    from data_gen.reference import reference_timing
+
+    traj = generate(replace(load_scene("coupled_pendulum"), trajectories=3, horizon=10), workers=1)
+    ref = reference_timing(traj, 3, 0.0)  # no error is small enough but the file's own
+    assert ref["reached"] and ref["reference_nmse_vs_file"] == 0.0
+    assert ref["integrator"] == "scipy DOP853 rtol=1e-09 atol=1e-09"
+    assert [t["setting"] for t in ref["tried"] if t["family"] == "scipy"][0] == "scipy DOP853 rtol=0.001 atol=0.001"
+    assert all(t["nmse"] > 0 for t in ref["tried"] if t["family"] == "rk4")  # RK4 of any step is not exact

@@ -28,6 +28,7 @@ KINDS = {
     "l2s": dict(kind="l2s", aggregation="sum"),
     "l2s-mean-self": dict(kind="l2s", aggregation="mean", self_messages=True),
     "node": dict(kind="node", n_nodes=N),
+    "mpnode-encoder": dict(message_dim=3, encoder_window=3),  # format 4: the encoder is not exported
 }
 
 
@@ -98,6 +99,7 @@ def test_numpy_module_equals_model_rollout(tmp_path, name, dtype):
     assert got.dtype == want.dtype == dtype and got.shape == want.shape
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * np.abs(want).max())
     np.testing.assert_allclose(module.rollout(x0[0], T, u[0]), got[0], rtol=1e-6)  # one trajectory, as Model.rollout
+    assert "'E1'" not in (tmp_path / "step.py").read_text()  # an export steps from a given state: no encoder
     with pytest.raises(ValueError, match="on the exported graph"):
         module.rollout(np.zeros((B, N + 1, DX)), T, u)
 
@@ -147,7 +149,8 @@ def test_export_help_says_what_is_and_is_not_exported():
     r = CliRunner().invoke(main, ["export", "--help"])
     assert r.exit_code == 0
     for words in ("What is exported", "What is not", "pip install 'mpnode[onnx]'", "x0 (B, N, dx)",
-                  "u (B, T, N, du)", "x (B, T+1, N, dx)", "rollout(x0, steps, u=None)", "numpy alone"):
+                  "u (B, T, N, du)", "x (B, T+1, N, dx)", "rollout(x0, steps, u=None)", "numpy alone",
+                  "initial-state encoder"):
         assert words in " ".join(r.output.split()), words
 
 

@@ -19,10 +19,13 @@ Set MPNODE_FUZZ_SCALE=10 (say) to run ten times as many examples when hunting (u
 of corrupted inputs tried is counted per reader and printed by the last test (run with -s).
 """
 import json
+import math
+import numbers
 import os
 import re
 import shutil
 import tempfile
+import warnings
 from collections import Counter
 from dataclasses import replace
 
@@ -803,6 +806,107 @@ def test_cli_inspect_bad_flags_exit_2(workdir, traj_bases):
                  ["inspect", traj_bases[0], "--yaml"]):
         TRIED["CLI"] += 1
         assert_exit_2(cli(*args))
+
+
+# ---- the Python API ---------------------------------------------------------------------------------
+# Every public function checks its arguments as the command line checks its flags: a value of the wrong
+# type or out of range is an InputError naming the argument; a valid one is taken as it is (never a
+# TypeError from deep inside, never "no" taken for True).  Each example calls one function with one
+# argument replaced by a value drawn from all kinds of values, and the property is exact both ways.
+def _integer(v, least):
+    return isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_)) and v >= least
+
+
+def _storable(text):
+    """A string HDF5 stores: UTF-8, without NUL."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return "\x00" not in text
+
+
+def _real(v):
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_)) and math.isfinite(v)
+
+
+#: kind of argument -> whether a value is valid for it ("never": no value drawn here is, e.g. a file path)
+VALID = {
+    "bool": lambda v: isinstance(v, (bool, np.bool_)),
+    "int>=0": lambda v: _integer(v, 0),
+    "int>=1": lambda v: _integer(v, 1),
+    "positive": lambda v: _real(v) and v > 0,
+    "non-negative": lambda v: _real(v) and v >= 0,
+    "split": lambda v: _real(v) and (v == 0 or 1 / 6 <= v < 1),  # of 3 trajectories, one left for validation
+    "seconds": lambda v: v is None or (_real(v) and v > 0),
+    "mapping": lambda v: v is None or isinstance(v, dict),
+    "name": lambda v: isinstance(v, str) and bool(v.strip()) and _storable(v),
+    "backend": lambda v: isinstance(v, str) and v in ("auto", "numba", "numpy"),
+    "never": lambda v: False,
+}
+API_VALUES = st.one_of(
+    st.none(), st.booleans(), st.just(np.bool_(True)), st.integers(-3, 24), st.just(np.int64(3)),
+    st.floats(-10, 10), st.sampled_from([math.nan, math.inf, -math.inf, 0.0, 1e-300, np.float32(0.5)]),
+    st.text(max_size=4), st.sampled_from(["no", "yes", "auto", "numpy", " "]), st.lists(st.integers(0, 3), max_size=2),
+    st.dictionaries(st.text(alphabet="abc", min_size=1, max_size=3), st.integers(0, 3), max_size=2),
+    st.just(object()))
+API_X = np.random.default_rng(5).standard_normal((3, 4, 2, 1))
+
+
+def _api_calls(folder):
+    """{name: (call(**one argument), {argument: kind})} of the public functions."""
+    from mpnode import Simulator, runs
+
+    arrays = {"x": API_X, "graph": [(0, 1)], "dt": 0.1, "system": "s"}
+    data = os.path.join(folder, "api.h5")
+    write_trajectories(data, **arrays)
+    model = Model.create(1, 0, message_dim=2, hidden=4, dt=0.1)
+    traj_args = {"directed": "bool", "dt": "positive", "system": "name", "attrs": "mapping", "params": "mapping",
+                 "aux": "mapping"}
+    return {
+        "write_trajectories": (lambda **kw: write_trajectories(os.path.join(folder, "w.h5"), **{**arrays, **kw}),
+                               traj_args),
+        "Trajectories.from_arrays": (lambda **kw: Trajectories.from_arrays(**{**arrays, **kw}), traj_args),
+        "read_trajectories": (lambda path: read_trajectories(path), {"path": "never"}),
+        "Model.create": (lambda **kw: Model.create(**{"state_dim": 2, "dt": 0.1, "hidden": 4, "message_dim": 2, **kw}),
+                         {"state_dim": "int>=1", "control_dim": "int>=0", "dt": "positive", "seed": "int>=0",
+                          "hidden": "int>=1", "message_dim": "int>=0", "substeps": "int>=1", "self_messages": "bool",
+                          "zero_messages": "bool", "linear_aggregate": "bool"}),
+        "Simulator": (lambda **kw: Simulator(**{"model": model, "graph": Graph.complete(2), **kw}),
+                      {"backend": "backend", "model": "never", "graph": "never"}),
+        "Simulator.reset": (lambda x0: Simulator(model, Graph.complete(2)).reset(x0), {"x0": "never"}),
+        "runs.train": (lambda **kw: runs.train([data], os.path.join(folder, "m.h5"),
+                                               {"epochs": 0, "hidden": 4, "batch_size": 2, **kw}),
+                       {"epochs": "int>=0", "batch_size": "int>=1", "lr": "positive", "seed": "int>=0",
+                        "val_split": "split", "noise": "non-negative", "patience": "int>=1", "clip": "non-negative",
+                        "hidden": "int>=1", "self_messages": "bool", "time_limit": "seconds"}),
+    }
+
+
+@pytest.fixture(scope="module")
+def api_calls(workdir):
+    return _api_calls(tempfile.mkdtemp(dir=workdir))
+
+
+@fuzz(200)
+@given(data=st.data())
+def test_python_api_arguments_are_checked_like_flags(api_calls, data):
+    name = data.draw(st.sampled_from(sorted(api_calls)), label="function")
+    call, kinds = api_calls[name]
+    argument = data.draw(st.sampled_from(sorted(kinds)), label="argument")
+    value = data.draw(API_VALUES, label="value")
+    valid = VALID[kinds[argument]](value)
+    TRIED["Python API"] += not valid
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a valid but huge learning rate diverges
+            call(**{argument: value})
+    except InputError as e:
+        assert not valid, f"{name}({argument}={value!r}) refused a valid value: {e}"
+        fields = {"never": None, "split": ("val_split", "x")}.get(kinds[argument], (argument,))  # x: none held out
+        assert fields is None or e.field in fields, f"{name}({argument}={value!r}): {e}"
+        return
+    assert valid, f"{name}({argument}={value!r}) was accepted"
 
 
 def test_fuzz_counts():

@@ -20,6 +20,7 @@ KINDS = {
                                              linear_aggregate=True, substeps=2),
     "l2s": dict(kind="l2s", aggregation="sum"),
     "node": dict(kind="node", n_nodes=N),
+    "mpnode-encoder": dict(message_dim=3, encoder_window=3),  # format 4: the encoder's weights follow the field's
 }
 
 

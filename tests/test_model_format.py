@@ -31,7 +31,7 @@ def rollout_from_file(path, traj):
                            message_dim=int(a["message_dim"]), hidden=int(a["hidden"]), dt=float(a["dt"]),
                            substeps=int(a["substeps"]), zero_messages=bool(a["zero_messages"]),
                            self_messages=bool(a["self_messages"]), aggregation=aggregation, n_nodes=a.get("n_nodes"),
-                           linear_path=bool(a.get("linear_aggregate", 0)))
+                           linear_path=bool(a.get("linear_aggregate", 0)), encoder_window=0)
     B, T1, N, dx = traj.x.shape
     out = np.empty((B, T1, N, dx))
     for b in range(B):

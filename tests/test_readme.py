@@ -9,20 +9,16 @@ so the table cannot go stale.  A block no test can run is marked in the README b
 new mark fails here until it is listed.
 """
 import hashlib
-import os
 import re
-import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from doc_snippets import fenced_blocks, run_python, run_shell, write_toml
 
 from mpnode.data import read_trajectories
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
-MPNODE = os.path.join(os.path.dirname(sys.executable), "mpnode")
 
 #: README text -> what the test runs instead: smaller budgets and data sets, nothing else
 SHRINK = {
@@ -30,7 +26,7 @@ SHRINK = {
     "--trajectories 1000": "--trajectories 20",
     "--time-limit 10m": "--epochs 2",
     "--trajectories 50 --seed 1": "--trajectories 10 --seed 1",
-    "--time-limit 5m": "--epochs 2",
+    "-o l10_model.h5 --time-limit 5m": "-o l10_model.h5 --epochs 2",
     "--trajectories 200 --seed 2": "--trajectories 10 --seed 2",
     '"epochs": 300': '"epochs": 2',
     "--epochs 100": "--epochs 5",
@@ -38,6 +34,9 @@ SHRINK = {
     "-B 100 --seed 5": "-B 10 --seed 5",
     "epochs = 300": "epochs = 2",
     "--trajectories 2000": "--trajectories 8",
+    "pend_log.h5 -B 300": "pend_log.h5 -B 12",
+    "-o pend_log_model.h5 --time-limit 5m": "-o pend_log_model.h5 --epochs 2",
+    "pend_log_test.h5 -B 100": "pend_log_test.h5 -B 6",
 }
 
 #: the README's blocks that no test runs, and why
@@ -46,25 +45,9 @@ NOT_RUN = {
     "hours of training (tests/test_paper_quick.py runs the --quick tier)",
 }
 
-FENCE = re.compile(r"^```(\w*)\s*$")
-MARK = re.compile(r"^<!-- not run by tests: (.*) -->$")
-
-
 def readme_blocks(text=None):
-    """[(language, code, reason or None)] of every fenced block, in order."""
-    lines = (README.read_text() if text is None else text).splitlines()
-    blocks, i = [], 0
-    while i < len(lines):
-        m = FENCE.match(lines[i])
-        if not m:
-            i += 1
-            continue
-        end = next(j for j in range(i + 1, len(lines)) if lines[j].startswith("```"))
-        before = next((lines[j] for j in range(i - 1, -1, -1) if lines[j].strip()), "")
-        mark = MARK.match(before.strip())
-        blocks.append((m.group(1), "\n".join(lines[i + 1:end]) + "\n", mark.group(1) if mark else None))
-        i = end + 1
-    return blocks
+    """[(language, code, reason or None)] of every fenced block of the README, in order."""
+    return fenced_blocks(README.read_text() if text is None else text)
 
 
 def shrunk(blocks):
@@ -79,27 +62,6 @@ def shrunk(blocks):
             code = code.replace(old, new)
         out.append((lang, code))
     return out
-
-
-def run_shell(code, folder):
-    for line in code.splitlines():
-        args = shlex.split(line, comments=True)
-        if not args:
-            continue
-        assert args[0] == "mpnode", f"a README shell line the test cannot run: {line!r} (mark its block)"
-        proc = subprocess.run([MPNODE, *args[1:]], cwd=folder, capture_output=True, text=True, timeout=600)
-        assert proc.returncode == 0, f"{line}\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
-
-
-def run_python(code, folder, monkeypatch):
-    monkeypatch.chdir(folder)
-    exec(compile(code, "README.md", "exec"), {"__name__": "__main__"})
-
-
-def write_toml(code, folder):
-    name = re.match(r"# ([\w.-]+\.toml):", code)
-    assert name, f"a toml block must start with '# NAME.toml: ...':\n{code}"
-    (folder / name.group(1)).write_text(code)
 
 
 def digest(path):

@@ -118,18 +118,18 @@ def test_errors_say_what_to_fix():
     sim = Simulator(model, g)
     with pytest.raises(RuntimeError, match="reset"):
         sim.step(np.zeros((1, N, DU)))
-    with pytest.raises(ValueError, match=r"expected \(B, 9, 2\)"):
+    with pytest.raises(InputError, match=r"expected \(B, 9, 2\)"):
         sim.reset(np.zeros((N, DX)))
     sim.reset(np.zeros((2, N, DX)))
-    with pytest.raises(ValueError, match=r"u has shape \(2, 9, 3\), expected \(2, 9, 2\)"):
+    with pytest.raises(InputError, match=r"u: has shape \(2, 9, 3\).*\(2, 9, 2\)"):
         sim.step(np.zeros((2, N, 3)))
-    with pytest.raises(ValueError, match="takes controls"):
+    with pytest.raises(InputError, match="takes controls"):
         sim.step()
     with pytest.raises(InputError, match="kind node"):
         Simulator(make_model("node", 0, np.float64), Graph.complete(N + 1))
     with pytest.raises(InputError, match="networkx"):
         Simulator(model, [(0, 1)])
-    with pytest.raises(ValueError, match="backend"):
+    with pytest.raises(InputError, match="backend"):
         Simulator(model, g, backend="torch")
 
 

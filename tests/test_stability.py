@@ -221,7 +221,7 @@ def test_window_part_cuts_every_trajectory_into_windows_from_true_states(tiny_li
     for b in range(6):
         for j, a in enumerate([0, 4, 6]):
             np.testing.assert_array_equal(w.x[:, b * 3 + j], part.x[a:a + 5, b])
-    x, u, g = w.batch(np.array([0, 4, 17]))
+    x, u, g, _ = w.batch(np.array([0, 4, 17]))
     assert x.shape == (5, 3 * 2, 2) and u is None and g.n_nodes == 6
     np.testing.assert_array_equal(x[:, 4:6], part.x[6:11, 5])
 

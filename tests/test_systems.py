@@ -135,6 +135,33 @@ def test_kuramoto_rhs_matches_the_edge_sum():
 
 
 # ---- graphs ----------------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["coupled_pendulum", "lorenz", "gene", "kuramoto"])
+def test_every_right_hand_side_takes_states_as_columns(name):
+    """The batched reference (data_gen.reference) evaluates K states at once as the columns of y
+    (N*dx, K); each column must be exactly the right-hand side of that state alone."""
+    system = SYSTEMS[name]
+    n = 2 if name == "coupled_pendulum" else 5
+    graph = Graph.complete(n) if system.complete else Graph.from_edges(n, [(0, 1), (1, 2), (3, 1), (4, 0)])
+    rng = np.random.default_rng(1)
+    params = {**system.defaults, **system.draw(system.defaults, n, rng)}
+    f = make_rhs(name, params, graph)
+    y = rng.uniform(0.1, 0.7, size=(n * system.state_dim, 4))
+    columns = f(0.0, y)
+    assert columns.shape == y.shape
+    for k in range(4):
+        np.testing.assert_array_equal(columns[:, k], f(0.0, y[:, k].copy()))
+
+
+def test_dt_beyond_ten_time_scales_is_refused():
+    pendulum = SYSTEMS["coupled_pendulum"]
+    scale = 2 * np.pi * math.sqrt(1.5 / 9.81)  # the small-oscillation period
+    pendulum.check_dt({}, 9.9 * scale, "scene")
+    with pytest.raises(InputError, match=r"dt: is 1000, 407 times the time scale of coupled_pendulum \(2.46"):
+        pendulum.check_dt({}, 1e3, "scene")
+    SYSTEMS["gene"].check_dt({"b": 1e4}, 0.05, "scene")  # stiff (fast decay), yet slow where it matters
+    SYSTEMS["gene"].check_dt({"b": 0.01}, 999.0, "scene")  # slow decay: a time scale of 100
+
+
 def test_spec_graphs():
     er, ba, ws = (gene_graph(kind, 16, (1,)).build()[0] for kind in ("er", "ba", "ws"))
     assert ba.n_edges == 2 * 8 * (16 - 8)  # barabasi_albert(16, 8): m (n - m) undirected edges

@@ -35,7 +35,7 @@ def test_validation_loss_is_the_training_loss_without_noise(tiny_linear, fresh, 
     traj = tiny_linear()
     cfg = train.TrainConfig(noise=0.0)
     tr, va, _ = prepared(m, [traj], cfg)
-    x, u, g = tr[0].batch(np.arange(tr[0].n))
+    x, u, g, _ = tr[0].batch(np.arange(tr[0].n))
     for loss in ("huber", "mse"):
         ref, _, _ = losses.value_and_grad(m.spec, m.theta, x, g, u, loss)
         pred = engine.forward(m.spec, m.theta, x[0], g, u, x.shape[0] - 1)

@@ -1,14 +1,11 @@
-"""Trajectory data: the `Trajectories` object, its HDF5 file format (docs/trajectory-format.md)
-with one validator behind reader and writer, and `.npz` import (`mpnode convert`).
+"""Trajectory data: the `Trajectories` object, its rules and HDF5 file format
+(docs/trajectory-format.md: version 1, regular and complete; version 2, data as they come),
+`.npz` import (`mpnode convert`) and the summary `mpnode inspect` shows.
 
-Owns: `trajectories`, `npz`.  May import: mpnode.base.
+Owns: `trajectories`, `rules`, `files`, `npz`, `summary`.  May import: mpnode.base.
 """
+from .files import FORMAT_VERSION, read_trajectories, write_trajectories  # noqa: F401
 from .npz import read_npz  # noqa: F401
-from .trajectories import (  # noqa: F401
-                           FORMAT_VERSION,
-                           Trajectories,
-                           read_trajectories,
-                           summarize,
-                           validate_trajectories,
-                           write_trajectories,
-)
+from .rules import validate_trajectories  # noqa: F401
+from .summary import summarize  # noqa: F401
+from .trajectories import Trajectories  # noqa: F401

@@ -22,10 +22,12 @@ from .trajectories import Trajectories
 
 #: key -> what it holds (the documentation of the layout, in one place)
 KEYS = {
-    "x": "(B, T+1, N, dx) float: node states (node i is x[:,:,i]; x[b,0] the initial state) (required)",
-    "u": "(B, T, N, du) float: controls held over step t -> t+1 (optional)",
-    "dt": "number: time between saved states (required unless t or --dt gives it)",
-    "t": "(T+1,) float: times of the saved states, evenly spaced (optional; gives dt)",
+    "x": "(B, T+1, N, dx) float: node states (node i is x[:,:,i]; x[b,0] the first observation); NaN where a "
+         "value was not observed (required)",
+    "u": "(B, T, N, du) float: controls held from one saved state to the next (optional)",
+    "dt": "number: time between saved states; with uneven times t the model's step (default: their median gap)",
+    "t": "(T+1,) or (B, T+1) float: times of the saved states, shared or per trajectory, strictly increasing; "
+         "NaN at the end of a shorter trajectory (optional; evenly spaced times give dt)",
     "system": "string: a name for the system (required unless --system gives it)",
     "edges": "(E, 2) int: the graph as (sender, receiver) pairs, node ids 0..N-1: the receiver hears the sender",
     "directed": "0/1: the edge lists are one-way (default 0: each pair joins both ways)",
@@ -56,7 +58,7 @@ def read_npz(path, dt=None, system=None):
     if x.ndim != 4:
         raise InputError(source, "x", f"has shape {x.shape}", "a 4-D array (B, T+1, N, dx) (one trajectory: x[None])")
     attrs = {}
-    step = _dt(arrays, dt, x.shape[1] - 1, attrs, source)
+    step, times = _dt(arrays, dt, x.shape, attrs, source)
     name = _system(arrays, system, source)
     graphs = _graphs(arrays, x.shape[2], source)
     for key in ("state_names", "control_names"):
@@ -71,7 +73,7 @@ def read_npz(path, dt=None, system=None):
         else:
             aux[key] = a
     return Trajectories.from_arrays(x, graphs, step, name, u=u, graph_index=graph_index, attrs=attrs, aux=aux,
-                                    source=source)
+                                    t=times, source=source)
 
 
 def _load(source):
@@ -129,30 +131,39 @@ def _agree(key, value, option, source):
     return value
 
 
-def _dt(arrays, option, steps, attrs, source):
-    """dt from the key dt, or from the times t (evenly spaced), or the --dt option."""
+def _dt(arrays, option, shape, attrs, source):
+    """(dt, t): dt from the key dt, the times t or the --dt option; t the times when they are not
+    evenly spaced (None when they are: the file is then regular)."""
     dt = _scalar(arrays, "dt", "iuf", source, "one number > 0: the time between saved states")
     dt = None if dt is None else float(dt)
+    times = None
     if "t" in arrays:
-        t = arrays.pop("t")
-        if t.dtype.kind not in "iuf" or t.shape != (steps + 1,):
-            raise InputError(source, "t", f"is a {t.dtype} array of shape {t.shape}",
-                             f"the times of x's {steps + 1} saved states, shape ({steps + 1},)")
-        t = t.astype(np.float64)
-        step = (t[-1] - t[0]) / steps
+        times = _times(arrays.pop("t"), shape, source)
+        steps = shape[1] - 1
+        step = (times[:, -1] - times[:, 0]) / steps
         # within 0.1 % of one step: float32 times are that uneven, a real change of rate is not
-        if not (np.all(np.isfinite(t)) and step > 0 and np.all(np.abs(np.diff(t) - step) <= 1e-3 * step)):
-            raise InputError(source, "t", "is not evenly spaced and increasing",
-                             "times t[k] = t[0] + k * dt (the model steps by a fixed dt)")
-        if dt is not None and not np.isclose(dt, step, rtol=1e-3, atol=0):
-            raise InputError(source, "dt", f"is {dt:g} but the times t are {step:g} apart", "dt and t to agree")
-        dt = float(dt if dt is not None else step)
-        if t[0] != 0:
-            attrs["t0"] = float(t[0])
+        even = (np.isfinite(times).all() and np.all(step > 0) and np.allclose(step, step[0], rtol=1e-3, atol=0)
+                and np.all(np.abs(np.diff(times, axis=1) - step[:, None]) <= 1e-3 * step[:, None])
+                and np.all(times[:, 0] == times[0, 0]))
+        if even:
+            if dt is not None and not np.isclose(dt, step[0], rtol=1e-3, atol=0):
+                raise InputError(source, "dt", f"is {dt:g} but the times t are {step[0]:g} apart", "dt and t to agree")
+            dt = float(dt if dt is not None else step[0])
+            if times[0, 0] != 0:
+                attrs["t0"] = float(times[0, 0])
+            times = None
     dt = _agree("dt", dt, option, source)
-    if dt is None:
+    if dt is None and times is None:
         raise InputError(source, "dt", "is missing", "a key dt (the time between saved states), a key t, or --dt")
-    return dt
+    return dt, times
+
+
+def _times(t, shape, source):
+    """The key t as (B, T+1) float64: the times of x's saved states, shared (T+1,) or per trajectory."""
+    if t.dtype.kind not in "iuf" or t.shape not in ((shape[1],), tuple(shape[:2])):
+        raise InputError(source, "t", f"is a {t.dtype} array of shape {t.shape}",
+                         f"the times of x's {shape[1]} saved states, shape ({shape[1]},) or ({shape[0]}, {shape[1]})")
+    return np.array(np.broadcast_to(t.astype(np.float64), tuple(shape[:2])))
 
 
 def _system(arrays, option, source):

@@ -10,6 +10,15 @@ import numpy as np
 
 def param_shapes(spec):
     """{name: shape} of ``spec``'s kind, in the flat layout's order (spec: engine.FieldSpec)."""
+    shapes = field_shapes(spec)
+    if spec.encoder_window:  # after the field's: the kernels read theta from its start
+        dx, H = spec.state_dim, spec.hidden
+        shapes.update(E1=(spec.encoder_window * (2 * dx + 1), H), e1=(H,), E2=(H, dx), e2=(dx,))
+    return shapes
+
+
+def field_shapes(spec):
+    """{name: shape} of the arrays the field (the kernels) reads, in layout order."""
     dx, du, dm, H = spec.state_dim, spec.control_dim, spec.message_dim, spec.hidden
     if spec.kind == "l2s":
         return {"W_lift": (dx + du, H), "b_lift": (H,), "W_msg": (H, H), "b_msg": (H,), "psi": (H,),
@@ -23,8 +32,9 @@ def param_shapes(spec):
 
 
 #: weight matrices that start at zero, not Glorot: W_agg, so that a model with the linear
-#: aggregate path starts as the same MLP without it
-ZERO_INIT = ("W_agg",)
+#: aggregate path starts as the same MLP without it; E2, so that a new initial-state encoder
+#: starts by taking the first observation as it is
+ZERO_INIT = ("W_agg", "E2")
 
 
 def n_params(spec):

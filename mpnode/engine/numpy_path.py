@@ -15,6 +15,7 @@ evaluation, so small graphs pay NumPy's per-call overhead (benchmarks/bench_simu
 import numpy as np
 
 from . import layouts
+from .schedule import time_grid
 from .spec import checked_controls, rule_weights
 
 
@@ -91,8 +92,10 @@ def make_field(spec, theta, graph):
     return mpnode_field
 
 
-def integrate(spec, theta, z0, graph, u=None, n_steps=1, with_messages=False):
-    """Classic RK4 at h = dt/substeps from the full state z0 = [x, m] (M, dx+dm), u held over each dt.
+def integrate(spec, theta, z0, graph, u=None, n_steps=1, with_messages=False, intervals=None):
+    """Classic RK4 from the full state z0 = [x, m] (M, dx+dm), u held over each output interval:
+    ``substeps`` steps of dt/substeps per dt, or the steps of `mpnode.engine.schedule.time_grid`
+    for the per-node ``intervals`` (n_steps, M).
 
     Returns (x (n_steps+1, M, dx), z (M, dx+dm) at the end), as `engine.integrate`;
     with_messages: (x, m (n_steps+1, M, dm), z), the messages after every step too.
@@ -103,13 +106,15 @@ def integrate(spec, theta, z0, graph, u=None, n_steps=1, with_messages=False):
     m, dx = z.shape[0], spec.state_dim
     u = _controls(spec, graph, u, n_steps, z, dtype)
     field = make_field(spec, theta, graph)
-    h = dtype.type(spec.dt / spec.substeps)
-    half, sixth, two = h / dtype.type(2), h / dtype.type(6), dtype.type(2)
+    nsub, hstep = time_grid(spec, n_steps, m, dtype, intervals)
+    two = dtype.type(2)
     x = np.empty((n_steps + 1, m, dx), dtype=dtype)
     msgs = np.empty((n_steps + 1, m, z.shape[1] - dx), dtype=dtype)
     x[0], msgs[0] = z[:, :dx], z[:, dx:]
     for t in range(n_steps):
-        for _ in range(spec.substeps):
+        h = hstep[t][:, None]
+        half, sixth = h / dtype.type(2), h / dtype.type(6)
+        for _ in range(nsub[t]):
             k1 = field(z, u[t])
             k2 = field(z + half * k1, u[t])
             k3 = field(z + half * k2, u[t])
@@ -119,13 +124,13 @@ def integrate(spec, theta, z0, graph, u=None, n_steps=1, with_messages=False):
     return (x, msgs, z) if with_messages else (x, z)
 
 
-def rollout(spec, theta, x0, graph, u=None, n_steps=1, with_messages=False):
+def rollout(spec, theta, x0, graph, u=None, n_steps=1, with_messages=False, intervals=None):
     """From x0 (M, dx), messages starting at 0: x (n_steps+1, M, dx), or (x, m) with the
     messages m (n_steps+1, M, dm) after every step (the compiled engine keeps only x)."""
     x0 = np.asarray(x0)
     z0 = np.zeros((x0.shape[0], spec.state_dim + spec.message_dim), dtype=np.asarray(theta).dtype)
     z0[:, :spec.state_dim] = x0
-    out = integrate(spec, theta, z0, graph, u, n_steps, with_messages)
+    out = integrate(spec, theta, z0, graph, u, n_steps, with_messages, intervals)
     return out[:2] if with_messages else out[0]
 
 

@@ -4,9 +4,10 @@
 `integrate_with_vjp`) also returns the vector-Jacobian product of
 the rollout, the *discrete adjoint*: for any cotangent gx of the output states it gives
 the exact gradient, with respect to the parameters, the initial state and (on request)
-the controls, of <gx, rollout> as computed (not of the ODE it approximates).  Losses, windows, multiple
-shooting are the caller's business (`mpnode.training.losses`).  Cost: memory for one state per RK4
-step (T*substeps+1 arrays of (M, dz)); time a few rollouts' worth (forward, recomputed
+the controls, of <gx, rollout> as computed (not of the ODE it approximates).  Losses, windows,
+multiple shooting are the caller's business (`mpnode.training.losses`).  Outputs fall every dt, or
+at each trajectory's own times (``intervals``, see `mpnode.engine.schedule`).  Cost: memory for one
+state per RK4 step (sum of the steps + 1 arrays of (M, dz)); time a few rollouts' worth (forward, recomputed
 stages, and a VJP that costs about twice a forward; docs/evidence/speed.md).  Stage values are recomputed rather
 than stored, so memory does not grow with the hidden width.
 
@@ -22,17 +23,12 @@ from mpnode.base.graph import Graph
 
 from .backend import resolve_backend, single_threaded_blas
 from .plan import plan_for
+from .schedule import time_grid
 from .spec import checked_controls
-
 
 # ---------------------------------------------------------------------------
 # Entry points
 # ---------------------------------------------------------------------------
-def _prepare(spec, theta, graph, u, n_steps, n_nodes, driver, ordering):
-    dtype = theta.dtype
-    u = checked_controls(spec, graph, u, n_steps, n_nodes, dtype)
-    h = dtype.type(spec.dt / spec.substeps)
-    return u, plan_for(graph, spec, dtype, driver, ordering), h
 
 
 def _whole_systems(spec, x0, u, graph):
@@ -50,14 +46,23 @@ def _whole_systems(spec, x0, u, graph):
     return inner, np.asarray(x0).reshape(m // n, n * dx), u, _edgeless(m // n)
 
 
+def _per_system(spec, intervals):
+    """A node model's intervals (T, M) as its whole systems' (T, M / N): a system's nodes share them."""
+    if intervals is None:
+        return None
+    iv = np.asarray(intervals)
+    return iv.reshape(iv.shape[0], -1, spec.n_nodes)[:, :, 0]
+
+
 @functools.lru_cache(maxsize=16)
 def _edgeless(n):
     return Graph(np.zeros(n + 1, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
 
-def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering):
+def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, intervals):
     """The forward rollout from the full state z0: (x (n_steps+1, M, dx) and z at the end in
-    the user's node order, states or None and u in the kernels' order, plan, h)."""
+    the user's node order, states or None, and u, the time grid and the plan as the kernels
+    saw them)."""
     from . import kernels
 
     theta = np.ascontiguousarray(theta)
@@ -65,20 +70,23 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering):
     m = z0.shape[0]
     if z0.shape != (m, spec.state_width):
         raise ValueError(f"the full state has shape {z0.shape}, expected (M, {spec.state_width}) (x, then messages)")
-    u, plan, h = _prepare(spec, theta, graph, u, n_steps, m, driver, ordering)
+    u = checked_controls(spec, graph, u, n_steps, m, theta.dtype)
+    plan = plan_for(graph, spec, theta.dtype, driver, ordering)
+    nsub, hstep = time_grid(spec, n_steps, m, theta.dtype, intervals)
     z0, u = plan.to_kernel_order(z0), np.ascontiguousarray(plan.to_kernel_order(u, axis=1))
+    hstep = np.ascontiguousarray(plan.to_kernel_order(hstep, axis=1))
     out = np.empty((n_steps + 1, m, spec.state_dim), dtype=theta.dtype)
-    n_states = n_steps * spec.substeps + 1 if keep_states else 0
+    n_states = int(nsub.sum()) + 1 if keep_states else 0
     states = np.empty((n_states, m if keep_states else 0, spec.state_width), dtype=theta.dtype)
     zend = np.empty_like(z0)
     g = (plan.csr.indptr, plan.csr.indices, plan.weight)
     with single_threaded_blas():
         if plan.blocks is None:
-            kernels.rollout_stagewise(theta, spec.dims, z0, u, g, spec.substeps, h, out, states, zend)
+            kernels.rollout_stagewise(theta, spec.dims, z0, u, g, nsub, hstep, out, states, zend)
         else:
             kernels.rollout_blocks(theta, spec.dims, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off,
-                                   plan.dense_A, spec.substeps, h, out, states, zend)
-    return plan.to_user_order(out), states, plan.to_user_order(zend[None])[0], u, plan, h
+                                   plan.dense_A, nsub, hstep, out, states, zend)
+    return plan.to_user_order(out), states, plan.to_user_order(zend[None])[0], u, (nsub, hstep), plan
 
 
 def initial_state(spec, x0, dtype=None):
@@ -89,19 +97,23 @@ def initial_state(spec, x0, dtype=None):
     return z0
 
 
-def forward(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", backend="auto", ordering="auto"):
+def forward(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", backend="auto", ordering="auto",
+            intervals=None):
     """Integrate from x0 (messages start at 0).
 
     x0 : ndarray, shape (M, dx); u : ndarray, shape (n_steps, M, du) or None;
     returns x : ndarray, shape (n_steps+1, M, dx), in theta's dtype.
+    intervals : None (outputs every dt) or (n_steps, M): each node's time to its next output
+        (mpnode.engine.schedule); u is held over each interval.
     driver, ordering : see plan_for.  For kind "node" the graph only gives M (whole systems).
     backend : see `resolve_backend` ("auto": the compiled kernels, NumPy without numba).
     """
     z0 = initial_state(spec, x0, np.asarray(theta).dtype)
-    return integrate(spec, theta, z0, graph, u, n_steps, driver, backend, ordering)[0]
+    return integrate(spec, theta, z0, graph, u, n_steps, driver, backend, ordering, intervals)[0]
 
 
-def integrate(spec, theta, z0, graph, u=None, n_steps=1, driver="auto", backend="auto", ordering="auto"):
+def integrate(spec, theta, z0, graph, u=None, n_steps=1, driver="auto", backend="auto", ordering="auto",
+              intervals=None):
     """Integrate from a full state z0 = [x, m] (M, dx + dm), e.g. where an earlier call stopped.
 
     Returns (x, z): x (n_steps+1, M, dx) as `forward`, z (M, dx + dm) the full state at the
@@ -112,16 +124,18 @@ def integrate(spec, theta, z0, graph, u=None, n_steps=1, driver="auto", backend=
     if resolve_backend(backend) == "numpy":
         from . import numpy_path
 
-        return numpy_path.integrate(spec, theta, z0, graph, u, n_steps)
+        return numpy_path.integrate(spec, theta, z0, graph, u, n_steps, intervals=intervals)
     z_shape = np.shape(z0)
     shape = (n_steps + 1, z_shape[0], spec.state_dim)
     if spec.kind == "node":
+        intervals = _per_system(spec, intervals)
         spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
-    x, _, zend, _, _, _ = _run(spec, theta, z0, graph, u, n_steps, driver, False, ordering)
+    x, _, zend, _, _, _ = _run(spec, theta, z0, graph, u, n_steps, driver, False, ordering, intervals)
     return x.reshape(shape), zend.reshape(z_shape)
 
 
-def forward_with_vjp(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", keep_states=True, ordering="auto"):
+def forward_with_vjp(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", keep_states=True, ordering="auto",
+                     intervals=None):
     """`forward`, and the vector-Jacobian product of the rollout (the discrete adjoint).
 
     Returns (x, vjp): x as `forward`; ``vjp(gx)`` takes the cotangent of every output
@@ -134,11 +148,11 @@ def forward_with_vjp(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", k
     the NumPy path rolls out but does not train.
     """
     z0 = initial_state(spec, x0, np.asarray(theta).dtype)
-    return integrate_with_vjp(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering)
+    return integrate_with_vjp(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, intervals)
 
 
 def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto", keep_states=True,
-                       ordering="auto"):
+                       ordering="auto", intervals=None):
     """`forward_with_vjp` from a full state z0 = [x, m] (M, dx + dm), as `integrate`.
 
     gx0 is then the gradient with respect to z0's x columns, its messages held at their
@@ -149,28 +163,30 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
     shape = (n_steps + 1, z0.shape[0], spec.state_dim)
     u_shape = (n_steps, z0.shape[0], spec.control_dim)
     if spec.kind == "node":
+        intervals = _per_system(spec, intervals)
         spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
-    x, states, _, u, plan, h = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering)
+    x, states, _, u, grid, plan = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, intervals)
     x = x.reshape(shape)
     if not keep_states:
         return x, None
+    theta = np.ascontiguousarray(theta)
 
     def vjp(gx, controls=False):
         if np.shape(gx) != shape:
             raise ValueError(f"the cotangent has shape {np.shape(gx)}, the rollout {shape}")
-        gtheta, gx0, gu = _reverse(spec, theta, plan, h, states, u, gx, controls)
+        gtheta, gx0, gu = _reverse(spec, theta, plan, u, grid, states, gx, controls)
         return (gtheta, gx0.reshape(shape[1:])) + ((gu.reshape(u_shape),) if controls else ())
 
     return x, vjp
 
 
-def _reverse(spec, theta, plan, h, states, u, gx, controls):
-    """The reverse drivers: (gtheta, gx0 (M, dx), gu (T, M, du) or None) in the user's node order."""
+def _reverse(spec, theta, plan, u, grid, states, gx, controls=False):
+    """The kernels' reverse pass for the cotangent ``gx`` of every output: (gtheta, gx0 (M, dx),
+    gu (T, M, du) or None) in the user's node order."""
     from . import kernels
 
-    theta = np.ascontiguousarray(theta)
     n_steps, m = u.shape[0], states.shape[1]
-    gx = np.asarray(gx, dtype=theta.dtype).reshape(n_steps + 1, m, spec.state_dim)
+    gx = np.asarray(gx, dtype=theta.dtype).reshape(-1, m, spec.state_dim)
     gx = np.ascontiguousarray(plan.to_kernel_order(gx, axis=1))
     tgraph = plan.transposed
     n_parts = len(plan.blocks) - 1 if plan.blocks is not None else -(-m // kernels.STAGE_TILE)
@@ -178,12 +194,13 @@ def _reverse(spec, theta, plan, h, states, u, gx, controls):
     gx0 = np.empty((m, spec.state_dim), dtype=theta.dtype)
     gu = np.zeros((n_steps, m if controls else 0, spec.control_dim), dtype=theta.dtype)
     g, gt = (plan.csr.indptr, plan.csr.indices, plan.weight), (tgraph.indptr, tgraph.indices)
+    nsub, hstep = grid
     with single_threaded_blas():
         if plan.blocks is None:
-            kernels.vjp_stagewise(theta, spec.dims, u, g, gt, spec.substeps, h, states, gx, gthetas, gx0, gu)
+            kernels.vjp_stagewise(theta, spec.dims, u, g, gt, nsub, hstep, states, gx, gthetas, gx0, gu)
         else:
             kernels.vjp_blocks(theta, spec.dims, u, g, gt, plan.blocks, plan.dense_n, plan.dense_off,
-                               plan.dense_A, plan.dense_AT, spec.substeps, h, states, gx, gthetas, gx0, gu)
+                               plan.dense_A, plan.dense_AT, nsub, hstep, states, gx, gthetas, gx0, gu)
     if plan.order is not None:
         gx0[plan.order] = gx0.copy()
         gu = plan.to_user_order(gu)

@@ -141,6 +141,9 @@ class FieldSpec:
     self_messages : every node also hears its own message;  zero_messages : messages held
         at 0 (the paper's ablation)
     aggregation : how a node combines its neighbours (`Aggregation`; default: the kind's)
+    encoder_window : W > 0 when the model estimates a trajectory's initial state from its first W
+        observations (mpnode.model.encoder; its weights follow the field's, the kernels never
+        read them), 0 when a rollout starts from the state it is given
     """
 
     kind: str = "mpnode"
@@ -154,6 +157,7 @@ class FieldSpec:
     zero_messages: bool = False
     aggregation: Aggregation = None
     n_nodes: int = None
+    encoder_window: int = 0
 
     def __post_init__(self):
         _one_of(self.kind, KINDS, "kind")
@@ -168,6 +172,8 @@ class FieldSpec:
         if (self.kind == "node") != (self.n_nodes is not None):
             raise InputError("model", "n_nodes", f"is {self.n_nodes!r} for a {self.kind} model",
                              "the system's node count for kind node, and only for it")
+        if not (isinstance(self.encoder_window, (int, np.integer)) and self.encoder_window >= 0):
+            raise InputError("model", "encoder_window", f"is {self.encoder_window!r}", "an integer >= 0")
         if self.aggregation.linear is not None and (self.kind != "mpnode" or not self.message_dim
                                                     or self.zero_messages):
             raise InputError("model", "linear_aggregate", f"is asked for a {self.kind} model with message_dim "
@@ -182,6 +188,8 @@ class FieldSpec:
                "zero_messages": int(self.zero_messages), **self.aggregation.options()}
         if self.n_nodes is not None:
             out["n_nodes"] = self.n_nodes
+        if self.encoder_window:
+            out["encoder_window"] = self.encoder_window
         return out
 
     @classmethod
@@ -195,7 +203,8 @@ class FieldSpec:
                    message_dim=int(a.get("message_dim", 0)), hidden=int(a["hidden"]), dt=float(a["dt"]),
                    substeps=int(a["substeps"]), self_messages=bool(a.get("self_messages", 0)),
                    zero_messages=bool(a.get("zero_messages", 0)), aggregation=aggregation,
-                   n_nodes=None if a.get("n_nodes") is None else int(a["n_nodes"]))
+                   n_nodes=None if a.get("n_nodes") is None else int(a["n_nodes"]),
+                   encoder_window=int(a.get("encoder_window", 0)))
 
     @property
     def dims(self):

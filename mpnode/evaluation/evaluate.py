@@ -14,15 +14,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mpnode.base.errors import NumericalError
+from mpnode.base.errors import InputError, NumericalError
 from mpnode.data import Trajectories
-from mpnode.model import check_data
+from mpnode.model import batch_graph, check_data
+from mpnode.model.start import fit_initial_state
 
 from . import stepsize
 from .metrics import (
     HORIZON_THRESHOLDS,
     blow_up_mask,
     data_box,
+    nmse_per_dimension,
     nmse_per_step,
     predictable_horizon,
 )
@@ -40,6 +42,9 @@ class EvalResult:
     substeps : RK4 substeps per dt used;  substeps_report : `choose_substeps` report (auto) or None
     stability : `stepsize.stability_check` dict (step_too_large, suggested_substeps, ...) or None
     horizons : `predictable_horizon` dict (threshold -> median step/time, per trajectory)
+    warmup : the observations each rollout's start was estimated from (scored from step max(1, warmup))
+    nmse_per_dim : the normalised MSE of each state dimension (NaN: not scored)
+    hidden_dims : the dimensions the model never saw measured in training: not scored
     """
 
     nmse_per_step: np.ndarray
@@ -57,6 +62,9 @@ class EvalResult:
     substeps_report: dict = None
     stability: dict = None
     horizons: dict = None
+    warmup: int = 0
+    nmse_per_dim: list = None
+    hidden_dims: list = None
 
     def summary(self):
         """A JSON-ready dict (no predictions; inf/NaN as strings)."""
@@ -71,7 +79,8 @@ class EvalResult:
                 "substeps": self.substeps, "substeps_auto": self.substeps_report,
                 "step_too_large": bool(self.stability and self.stability["step_too_large"]),
                 "suggested_substeps": self.stability and self.stability["suggested_substeps"],
-                "stability": self.stability, "predictable_horizon": self.horizons}
+                "stability": self.stability, "predictable_horizon": self.horizons, "warmup": self.warmup,
+                "nmse_per_dim": [num(float(v)) for v in self.nmse_per_dim or []], "hidden_dims": self.hidden_dims or []}
 
 
 @dataclass
@@ -86,11 +95,12 @@ class SimulationResult:
     stability: dict
 
 
-def rollout_all(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384):
+def rollout_all(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384, times=None):
     """Roll the model out from every initial state, in chunks of about ``max_nodes`` nodes.
 
     x0 : ndarray, shape (B, N, dx) data units;  graphs : list of Graph;  graph_index : (B,)
-    u : (B, T, N, du) or None.  Returns x : (B, steps+1, N, dx) in the model's dtype.
+    u : (B, T, N, du) or None;  times : (B, steps+1) the outputs' times, or None (every dt).
+    Returns x : (B, steps+1, N, dx) in the model's dtype.
     """
     b, n, _ = x0.shape
     graph_index = np.asarray(graph_index)
@@ -101,7 +111,8 @@ def rollout_all(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384):
             j = min(i + size, b)
             gi = graph_index[i:j]
             graph = graphs[int(gi[0])] if np.all(gi == gi[0]) else [graphs[int(k)] for k in gi]
-            out[i:j] = model.rollout(x0[i:j], graph, None if u is None else u[i:j], steps)
+            out[i:j] = model.rollout(x0[i:j], graph, None if u is None else u[i:j], steps,
+                                     times=None if times is None else times[i:j])
     return out
 
 
@@ -124,40 +135,116 @@ def with_substeps(model, substeps, x0, graphs, graph_index, u, horizon, tol, max
 
 def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=16384, substeps=None,
              substeps_tol=stepsize.DEFAULT_TOL, max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS,
-             horizon_thresholds=HORIZON_THRESHOLDS, check_stability=True):
+             horizon_thresholds=HORIZON_THRESHOLDS, check_stability=True, warmup=0, truth=None, start="encoder"):
     """Roll ``model`` out on every trajectory of ``traj`` and measure error and speed (EvalResult).
 
-    Raises InputError (naming ``source``) when dx/du (or a node model's N) differ, or dt
-    differs and is not allowed; with ``allow_dt_mismatch`` the model runs at the file's dt.
+    Predictions fall at the file's observation times.  warmup : K, the first K observations
+    of each trajectory are the model's to estimate where it starts from (with an initial-state
+    encoder; without, the first); the error counts the observations after them (steps
+    max(K, 1)..T).  truth : the clean states (like traj.x) to score against, when the data are
+    noisy; default the file's own truth, else its observations (what was observed only).
+    start : how the warm-up gives the start: "encoder" (the model's estimate, `Model.initial_state`)
+    or "fit" (from there, fitted to the warm-up's observations through the engine: mpnode.model.start).
+    Raises InputError (naming ``source``) when dx/du (or a node model's N) differ, or a regular
+    file's dt differs and is not allowed; with ``allow_dt_mismatch`` the model runs at the file's dt.
     substeps : None (the model's own), an int, or "auto" (module docstring).
     check_stability : run `stepsize.stability_check` after the rollout (result.stability).
     """
-    check_data(model, [traj], [source], allow_dt_mismatch=allow_dt_mismatch)
-    if not math.isclose(traj.dt, model.spec.dt, rel_tol=1e-9, abs_tol=0.0):
+    traj = model.fitted(traj)  # room for the model's latent dimensions, never observed
+    truth = None if truth is None else _with_latent(np.asarray(truth, dtype=np.float64), traj.state_dim)
+    check_data(model, [traj], [source], allow_dt_mismatch=allow_dt_mismatch or not traj.regular)
+    if traj.regular and not math.isclose(traj.dt, model.spec.dt, rel_tol=1e-9, abs_tol=0.0):
         model = model.with_spec(dt=float(traj.dt))
     model.check_finite()
     x = np.asarray(traj.x, dtype=np.float64)
     b, t1, n, dx = x.shape
-    u = None if traj.u is None else np.asarray(traj.u)
-    model, auto_report = with_substeps(model, substeps, x[:, 0], traj.graphs, traj.graph_index, u, t1 - 1,
+    u = None if traj.u is None else np.nan_to_num(np.asarray(traj.u))
+    times = None if traj.regular else traj.times()
+    x0 = start_states(model, traj, warmup, start)
+    model, auto_report = with_substeps(model, substeps, x0, traj.graphs, traj.graph_index, u, t1 - 1,
                                        substeps_tol, max_substeps)
-    # warm-up: load the compiled kernels before timing
-    rollout_all(model, x[:1, 0], traj.graphs, traj.graph_index[:1], 1, None if u is None else u[:1, :1])
-    start = time.perf_counter()
-    pred = rollout_all(model, x[:, 0], traj.graphs, traj.graph_index, t1 - 1, u, max_nodes)
-    seconds = time.perf_counter() - start
-    box = data_box(x)
+    seconds, pred = _timed_rollout(model, x0, traj, u, times, max_nodes)
+    clean = _truth_of(traj, truth, source)
+    score = _scored(clean, traj, max(warmup, 1), truth is None and traj.truth is None)
+    hidden = [int(k) for k in np.atleast_1d(model.attrs.get("unmeasured_dims", [])) if 0 <= int(k) < dx]
+    score[..., hidden] = np.nan  # a state the model never saw measured has no units to compare in
+    box = data_box(score)
     bad = blow_up_mask(pred, box=box)
-    err = nmse_per_step(pred, x, bad)
+    err = nmse_per_step(pred, score, bad, spread=clean)
     blown = bad.any(axis=0)
     stability = None
     if check_stability:
-        stability = stepsize.stability_check(model, x[:, 0], _per_trajectory(traj.graphs, traj.graph_index), u,
+        stability = stepsize.stability_check(model, x0, _per_trajectory(traj.graphs, traj.graph_index), u,
                                              pred, bad, substeps_tol, max_substeps=max_substeps, box=box)
-    return EvalResult(err, float(err[1:].mean()), float(err[-1]), int(np.argmax(blown)) if blown.any() else None,
+    first = max(warmup, 1)
+    return EvalResult(err, float(np.nanmean(err[first:])), _last(err), int(np.argmax(blown)) if blown.any() else None,
                       int(bad[:, -1].sum()), seconds, b * n * (t1 - 1) / max(seconds, 1e-12), pred, b, t1 - 1, n,
                       model.spec.substeps, auto_report, stability,
-                      predictable_horizon(pred, x, traj.dt, horizon_thresholds, bad))
+                      predictable_horizon(pred, score, traj.dt, horizon_thresholds, bad), warmup,
+                      nmse_per_dimension(pred, score, clean).tolist(), hidden)
+
+
+def start_states(model, traj, warmup, start="encoder"):
+    """(B, N, dx) where the rollouts of ``traj`` start: the model's estimate from each
+    trajectory's first max(warmup, 1) observations (mpnode.model.Model.initial_state), fitted
+    to them through the engine when ``start`` is "fit" (mpnode.model.start)."""
+    if start not in STARTS:
+        raise InputError("--start", "start", f"is {start!r}", " or ".join(STARTS))
+    k = max(int(warmup), 1)
+    times = None if traj.regular else traj.times()[:, :k]
+    obs = np.asarray(traj.x)[:, :k]
+    x0 = model.initial_state(obs, times)
+    if start == "fit" and k > 1:
+        u = None if traj.u is None else np.nan_to_num(np.asarray(traj.u)[:, :k - 1])
+        x0 = fit_initial_state(model, obs, batch_graph(_per_trajectory(traj.graphs, traj.graph_index), len(obs)),
+                               times, u, start=x0)
+    return x0
+
+
+#: how a warm-up gives a rollout its start
+STARTS = ("encoder", "fit")
+
+
+def _timed_rollout(model, x0, traj, u, times, max_nodes):
+    """(seconds, predictions): every trajectory rolled out, the compiled kernels loaded first."""
+    rollout_all(model, x0[:1], traj.graphs, traj.graph_index[:1], 1, None if u is None else u[:1, :1],
+                times=None if times is None else times[:1, :2])
+    start = time.perf_counter()
+    pred = rollout_all(model, x0, traj.graphs, traj.graph_index, traj.horizon, u, max_nodes, times)
+    return time.perf_counter() - start, pred
+
+
+def _truth_of(traj, truth, source):
+    """What predictions are scored against: ``truth`` given, the file's own truth, or its observations."""
+    if truth is None:
+        truth = traj.truth if traj.truth is not None else traj.x
+    truth = np.asarray(truth, dtype=np.float64)
+    if truth.shape != traj.x.shape:
+        raise InputError(source, "truth", f"has shape {truth.shape} but the data have {traj.x.shape}",
+                         "the clean states of the same trajectories (the same B, T+1, N, dx)")
+    return truth
+
+
+def _with_latent(truth, dx):
+    """``truth`` (..., d) with NaN columns up to dx: a model's latent dimensions have no truth."""
+    missing = dx - truth.shape[-1]
+    return truth if missing <= 0 else np.concatenate([truth, np.full(truth.shape[:-1] + (missing,), np.nan)], -1)
+
+
+def _scored(truth, traj, first, observations):
+    """``truth`` with what is not scored made NaN: the warm-up (steps before ``first``; step 0
+    stays, the start), what lies past each trajectory's end, and, scoring the observations
+    themselves, what nobody observed."""
+    inside = (np.arange(traj.horizon + 1)[None, :] < traj.lengths[:, None])[:, :, None, None]
+    out = np.where(traj.observed() if observations else inside, truth, np.nan)
+    out[:, 1:first] = np.nan
+    return out
+
+
+def _last(err):
+    """The error at the last step that has one."""
+    finite = err[~np.isnan(err)]
+    return float(finite[-1]) if finite.size else float("nan")
 
 
 def simulation_box(model, x0):
@@ -202,8 +289,9 @@ def learned_seconds_per_trajectory(model, traj, k, repeats=3):
     return best / k
 
 
-def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, attrs=None):
-    """Trajectories holding ``pred`` (B, T+1, N, dx) on ``graphs`` (and controls ``u``).
+def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, attrs=None, t=None):
+    """Trajectories holding ``pred`` (B, T+1, N, dx) on ``graphs`` (and controls ``u``), at the
+    observation times ``t`` (B, T+1) when the data had their own.
 
     attrs say they are predictions (``predicted_by`` = model_name); raises NumericalError
     when a prediction is non-finite (the trajectory format forbids it).
@@ -214,7 +302,7 @@ def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, 
                              "predictions not written (the trajectory format forbids NaN/inf)")
     attrs = {"predicted_by": str(model_name), "prediction": 1, **(attrs or {})}
     return Trajectories(x=pred, graphs=list(graphs), dt=dt, system=system, u=u,
-                        graph_index=np.asarray(graph_index) if len(graphs) > 1 else None, attrs=attrs)
+                        graph_index=np.asarray(graph_index) if len(graphs) > 1 else None, attrs=attrs, t=t)
 
 
 def substeps_attrs(substeps, auto_report):
@@ -234,4 +322,6 @@ def subset(traj, idx):
     return Trajectories(x=np.asarray(traj.x)[idx], graphs=traj.graphs, dt=traj.dt, system=traj.system,
                         u=None if traj.u is None else np.asarray(traj.u)[idx],
                         graph_index=np.asarray(traj.graph_index)[idx], attrs=dict(traj.attrs),
-                        params=dict(traj.params), aux=dict(traj.aux))
+                        params=dict(traj.params), aux=dict(traj.aux),
+                        t=None if traj.t is None else np.asarray(traj.t)[idx],
+                        truth=None if traj.truth is None else np.asarray(traj.truth)[idx])

@@ -3,7 +3,8 @@
 Normalised MSE (the paper's error): the squared error of every state coordinate divided
 by the variance of that state dimension over the true states (all trajectories, steps
 and nodes), averaged over trajectories, nodes and dimensions.  1 means "no better than
-predicting the mean"; 0 is perfect.
+predicting the mean"; 0 is perfect.  Only what was observed counts: a NaN in the truth (a
+value nobody measured) is left out of every mean, and of the variances.
 
 A prediction that becomes non-finite, or leaves a box ten times as wide as the data (per
 dimension: [mid - 5 r, mid + 5 r] with mid and r the midpoint and range of the true
@@ -20,36 +21,54 @@ HORIZON_THRESHOLDS = (0.1, 1.0)
 
 
 def variance(x):
-    """The per-dimension variance of ``x`` (..., d) over every other axis, float64; a dimension
-    that does not vary counts with variance 1."""
+    """The per-dimension variance of the observed entries of ``x`` (..., d) over every other
+    axis, float64; a dimension that does not vary, or was not observed, counts with variance 1."""
     x = np.asarray(x, dtype=np.float64)
-    var = x.reshape(-1, x.shape[-1]).var(axis=0)
+    flat = x.reshape(-1, x.shape[-1])
+    seen = ~np.isnan(flat)
+    count = seen.sum(axis=0)
+    mean = np.where(seen, flat, 0).sum(axis=0) / np.maximum(count, 1)
+    var = np.where(seen, (flat - mean) ** 2, 0).sum(axis=0) / np.maximum(count, 1)
     return np.where(var > 0, var, 1.0)
 
 
 def normalised_sq_error(pred, truth, spread=None, var=None):
     """(pred - truth)^2 / the per-dimension variance of ``spread`` (default: ``truth``; or the
-    ``var`` given), float64, shape of ``pred`` (non-finite values become inf)."""
+    ``var`` given), float64, shape of ``pred``: NaN where the truth was not observed, inf where
+    a prediction is non-finite."""
     var = variance(truth if spread is None else spread) if var is None else var
     with np.errstate(all="ignore"):
         err = (np.asarray(pred, dtype=np.float64) - truth) ** 2 / var
-    err[~np.isfinite(err)] = np.inf
+    err[~np.isfinite(err) & ~np.isnan(np.asarray(truth, dtype=np.float64))] = np.inf
     return err
 
 
 def nmse(pred, truth, spread=None):
-    """Normalised MSE over every entry (steps 1..T: pass pred[:, 1:], truth[:, 1:]); the
+    """Normalised MSE over every observed entry (steps 1..T: pass pred[:, 1:], truth[:, 1:]); the
     variances come from ``spread`` (e.g. a whole file when ``truth`` is a sample of it)."""
-    return float(normalised_sq_error(pred, truth, spread).mean())
+    return float(_mean(normalised_sq_error(pred, truth, spread)))
+
+
+def _mean(err, axis=None):
+    """The mean over the observed (non-NaN) entries: NaN where there are none."""
+    seen = ~np.isnan(err)
+    with np.errstate(invalid="ignore"):
+        return np.where(seen, err, 0).sum(axis=axis) / seen.sum(axis=axis)
 
 
 def data_box(truth):
-    """(mid, r): per-dimension midpoint and range of ``truth`` (..., dx), r floored above 0."""
-    d = truth.shape[-1]
-    flat = truth.reshape(-1, d)
-    lo, hi = flat.min(axis=0), flat.max(axis=0)
+    """(mid, r): per-dimension midpoint and range of the observed ``truth`` (..., dx), r floored
+    above 0; a dimension observed nowhere has no bounds (r = inf)."""
+    flat = np.asarray(truth).reshape(-1, truth.shape[-1])
+    seen = ~np.isnan(flat)
+    lo = np.where(seen, flat, np.inf).min(axis=0)
+    hi = np.where(seen, flat, -np.inf).max(axis=0)
+    none = ~seen.any(axis=0)
+    lo[none], hi[none] = 0.0, 0.0
     mid, r = (lo + hi) / 2, hi - lo
-    return mid, np.maximum(r, np.maximum(1e-12, 1e-6 * np.abs(mid)))
+    r = np.maximum(r, np.maximum(1e-12, 1e-6 * np.abs(mid)))
+    r[none] = np.inf
+    return mid, r
 
 
 def blow_up_mask(pred, truth=None, box=None):
@@ -62,12 +81,18 @@ def blow_up_mask(pred, truth=None, box=None):
     return np.logical_or.accumulate(bad, axis=1)
 
 
-def nmse_per_step(pred, truth, bad=None):
-    """Normalised MSE per step, shape (T+1,); steps where some trajectory blew up (``bad``) are inf."""
-    err = normalised_sq_error(pred, truth).mean(axis=(0, 2, 3))
+def nmse_per_step(pred, truth, bad=None, spread=None):
+    """Normalised MSE per step, shape (T+1,); steps where some trajectory blew up (``bad``) are
+    inf, steps where nothing was observed NaN.  spread: whose variances (default: truth's)."""
+    err = _mean(normalised_sq_error(pred, truth, spread), axis=(0, 2, 3))
     if bad is not None:
         err[bad.any(axis=0)] = np.inf
     return err
+
+
+def nmse_per_dimension(pred, truth, spread=None):
+    """Normalised MSE of each state dimension over its observed entries of steps 1..T, (dx,)."""
+    return _mean(normalised_sq_error(pred[:, 1:], truth[:, 1:], truth if spread is None else spread), axis=(0, 1, 2))
 
 
 def predictable_horizon(pred, truth, dt, thresholds=HORIZON_THRESHOLDS, bad=None):
@@ -78,7 +103,7 @@ def predictable_horizon(pred, truth, dt, thresholds=HORIZON_THRESHOLDS, bad=None
     never above it), "first_step" (per trajectory, None if never)}}; the median is the lower
     median with "never" counted as beyond T, None when that falls beyond T.
     """
-    err = normalised_sq_error(pred, truth).mean(axis=(2, 3))  # (B, T+1)
+    err = np.nan_to_num(_mean(normalised_sq_error(pred, truth), axis=(2, 3)), nan=0.0)  # (B, T+1)
     if bad is not None:
         err[bad] = np.inf
     b, t1 = err.shape

@@ -1,12 +1,13 @@
 """A model on one graph as plain settings and arrays: what both export formats are written from."""
 import numpy as np
 
+from mpnode.engine.layouts import field_shapes
 from mpnode.engine.spec import rule_weights
 
 
 def model_arrays(model, graph):
-    """{name: value}: the spec's settings, the normalisation, the named parameters (model
-    dtype) and, for the kinds that hear neighbours, the graph's CSR rows with each node's
+    """{name: value}: the spec's settings, the normalisation, the field's named parameters
+    (model dtype; an initial-state encoder's are left out: an export steps from a given state) and, for the kinds that hear neighbours, the graph's CSR rows with each node's
     aggregation weight (``weight``; ``linear_weight`` when the linear path has its own rule),
     the rows that hear someone and the empty rows (L2S gives them psi)."""
     spec, dtype = model.spec, model.dtype
@@ -17,7 +18,7 @@ def model_arrays(model, graph):
          "self_messages": bool(spec.self_messages), "zero_messages": bool(spec.zero_messages),
          "dtype": np.dtype(dtype).name, "x_mean": model.x_mean, "x_std": model.x_std, "u_mean": model.u_mean,
          "u_std": model.u_std}
-    p.update({k: np.array(v) for k, v in model.params.items()})
+    p.update({k: np.array(v) for k, v in model.params.items() if k in field_shapes(spec)})
     if spec.kind != "node":
         agg = spec.aggregation
         deg = graph.degrees()

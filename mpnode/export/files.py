@@ -9,13 +9,13 @@ from mpnode.base.graph import Graph
 FORMATS = {".onnx": "ONNX graph", ".py": "NumPy module"}
 
 
-def export_file(model_path, output, graph_path=None, nodes=None, steps=None):
+def export_file(model_path, output, graph_path=None, nodes=None, steps=None, claim=None):
     """Write ``model_path``'s model on a graph to ``output`` (.onnx or .py); returns a one-line summary.
 
     graph_path : a trajectory file whose first graph the export is for; or ``nodes``: the
     complete graph on that many nodes.  steps : the ONNX rollout's T (default 1; the NumPy
     module takes it at run time).  Raises InputError (flag or file, field, fix) before
-    writing anything.
+    writing anything; then calls ``claim()`` if given (the command's lock on ``output``).
     """
     from mpnode.model import Model
 
@@ -34,6 +34,8 @@ def export_file(model_path, output, graph_path=None, nodes=None, steps=None):
         raise InputError("export", "--graph", "and --nodes are both given" if nodes else "nor --nodes is given",
                          "one of them: --graph DATA (the file's first graph) or --nodes N (a complete graph)")
     check_outputs({"--output": output}, [model_path] + ([graph_path] if graph_path else []))
+    if claim is not None:
+        claim()
     model = Model.load(model_path)
     graph = _graph(graph_path, nodes)
     model.check_nodes(graph.n_nodes, graph_path or "--nodes", "nodes")

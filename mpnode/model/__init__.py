@@ -2,7 +2,8 @@
 (docs/model-format.md), a change of normalisation that keeps what it computes, and
 `Simulator`, which steps it one dt at a time.
 
-Owns: `model`, `file`, `renormalise`, `simulator`.  May import: mpnode.engine, mpnode.base.
+Owns: `model`, `file`, `renormalise`, `simulator`, `provenance` (the data a model was trained on against
+the data it meets).  May import: mpnode.engine, mpnode.base.
 """
 from .model import Model, batch_graph, check_data  # noqa: F401
 from .simulator import Simulator  # noqa: F401

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mpnode.base.arguments import check_bool, check_int, check_mapping, check_number
 from mpnode.base.errors import InputError
 from mpnode.base.options import defaults, option, option_names
 from mpnode.engine.spec import AGGREGATIONS, KINDS, LINEAR_TARGETS, Aggregation, FieldSpec, default_aggregation
@@ -31,6 +32,11 @@ class ModelConfig:
         around the MLP (mpnode.engine.spec.Aggregation); either of the last two implies it
     self_messages : a node also hears its own message;  zero_messages : messages held at 0
     substeps : RK4 steps per dt;  dtype : "float32" or "float64"
+    encoder_window : W > 0: the model estimates a trajectory's whole initial state from its first
+        W observations (mpnode.model.encoder: values nobody measured, noise); 0: a rollout starts
+        from the first observation as it is
+    latent_dims : K more state dimensions per node beyond the data's, never observed: room for
+        what the data do not show (the encoder estimates their start)
     """
 
     kind: str = option("mpnode", aliases=("model",))
@@ -44,15 +50,19 @@ class ModelConfig:
     zero_messages: bool = False
     substeps: int = 1
     dtype: str = "float32"
+    encoder_window: int = 0
+    latent_dims: int = 0
 
     def __post_init__(self):
         _check_choice("kind", self.kind, KINDS)
-        _check_int("message_dim", self.message_dim, 0)
-        _check_int("hidden", self.hidden, 1)
-        _check_int("substeps", self.substeps, 1)
+        for name, least in (("message_dim", 0), ("hidden", 1), ("substeps", 1), ("encoder_window", 0),
+                            ("latent_dims", 0)):
+            object.__setattr__(self, name, _check_int(name, getattr(self, name), least))
         _check_choice("aggregation", self.aggregation, (None,) + AGGREGATIONS)
         _check_choice("linear_aggregation", self.linear_aggregation, (None,) + AGGREGATIONS)
         _check_choice("linear_target", self.linear_target, LINEAR_TARGETS)
+        for name in ("linear_aggregate", "self_messages", "zero_messages"):
+            object.__setattr__(self, name, check_bool(getattr(self, name), "model options", name))
         try:
             dtype = np.dtype(self.dtype).name
         except TypeError:
@@ -75,21 +85,29 @@ class ModelConfig:
     def spec(self, state_dim, control_dim, dt, n_nodes=None, mean_degree=None):
         """The engine's FieldSpec of a model of these options for data with ``state_dim``,
         ``control_dim`` and ``dt`` (a node model: ``n_nodes``; "scaled": ``mean_degree``)."""
+        state_dim, control_dim = check_int(state_dim, "model", "state_dim", 1), check_int(control_dim, "model",
+                                                                                           "control_dim", 0)
+        dt = check_number(dt, "model", "dt", positive=True)
+        n_nodes = None if n_nodes is None else check_int(n_nodes, "model", "n_nodes", 1)
+        mean_degree = None if mean_degree is None else check_number(mean_degree, "model", "mean_degree", least=0)
         mpnode = self.kind == "mpnode"
         aggregation = Aggregation.from_options(self.aggregation or default_aggregation(self.kind),
                                                self.linear_aggregate, self.linear_aggregation, self.linear_target,
                                                mean_degree if self.uses_mean_degree else None)
-        return FieldSpec(kind=self.kind, state_dim=int(state_dim), control_dim=int(control_dim),
-                         message_dim=self.message_dim if mpnode else 0, hidden=self.hidden, dt=float(dt),
-                         substeps=self.substeps, self_messages=bool(self.self_messages),
-                         zero_messages=bool(self.zero_messages) and mpnode, aggregation=aggregation,
-                         n_nodes=None if n_nodes is None else int(n_nodes))
+        return FieldSpec(kind=self.kind, state_dim=state_dim, control_dim=control_dim,
+                         message_dim=self.message_dim if mpnode else 0, hidden=self.hidden, dt=dt,
+                         substeps=self.substeps, self_messages=self.self_messages,
+                         zero_messages=self.zero_messages and mpnode, aggregation=aggregation, n_nodes=n_nodes,
+                         encoder_window=self.encoder_window)
 
 
 def configured(options=None, base=None):
     """``base`` (default: the defaults) with ``options`` set ({option or older name: value});
     InputError for an option ModelConfig does not have."""
     names = option_names(ModelConfig)
+    if base is not None and not isinstance(base, ModelConfig):
+        raise InputError("model options", "config", f"is a {type(base).__name__}", "a ModelConfig (or None)")
+    options = check_mapping(options, "model options", "options")
     unknown = sorted(k for k in (options or {}) if k not in names)
     if unknown:
         raise InputError("model options", unknown[0], "is not a model option", "one of " + ", ".join(
@@ -98,8 +116,10 @@ def configured(options=None, base=None):
 
 
 def _check_int(name, value, least):
+    """``value`` as a Python int (NumPy's would not go into a file's JSON) if it is an integer >= least."""
     if not (isinstance(value, numbers.Integral) and not isinstance(value, bool) and value >= least):
         raise InputError("model options", name, f"is {value!r}", f"an integer >= {least}")
+    return int(value)
 
 
 def _check_choice(name, value, allowed):

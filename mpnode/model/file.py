@@ -9,6 +9,7 @@ import numpy as np
 from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
 from mpnode.base.h5 import H5_DAMAGE, plain_attr
+from mpnode.base.oserrors import file_error, refused
 from mpnode.engine import layouts
 from mpnode.engine.spec import AGGREGATIONS, KINDS, LINEAR_TARGETS, FieldSpec, default_aggregation
 
@@ -17,6 +18,16 @@ FORMAT_VERSION = 2
 #: written only for a model with the linear aggregate path, so that a version-2 reader (which
 #: ignores attributes it does not know) refuses it instead of dropping the path
 LINEAR_PATH_VERSION = 3
+#: written only for a model with an initial-state encoder (with or without the linear path)
+ENCODER_VERSION = 4
+VERSIONS = (1, FORMAT_VERSION, LINEAR_PATH_VERSION, ENCODER_VERSION)
+
+
+def version_of(spec):
+    """The oldest format version that holds ``spec``: an older reader then refuses what it would misread."""
+    if spec.encoder_window:
+        return ENCODER_VERSION
+    return LINEAR_PATH_VERSION if spec.linear_path else FORMAT_VERSION
 
 def _is_int(v):
     return isinstance(v, int) and not isinstance(v, bool)
@@ -46,6 +57,7 @@ _TYPES = {
     "linear_aggregation": (lambda v: isinstance(v, str) and v in AGGREGATIONS, " or ".join(AGGREGATIONS)),
     "linear_target": (lambda v: isinstance(v, str) and v in LINEAR_TARGETS,
                       " or ".join(LINEAR_TARGETS) + " (what the linear aggregate path adds to)"),
+    "encoder_window": (lambda v: _is_int(v) and v >= 1, "an integer >= 1 (the initial-state encoder's observations)"),
 }
 _SPEC_ATTRS = set(_TYPES) | {"format", "format_version", "activation", "integrator", "kind", "aggregation"}
 
@@ -89,17 +101,18 @@ class _Attrs:
             spec = FieldSpec.from_attrs(values)
         except InputError as e:
             raise InputError(self.path, e.field, e.problem, e.expected) from None
-        if (version == LINEAR_PATH_VERSION) != spec.linear_path:
-            raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(spec.linear_path)}",
-                             f"{LINEAR_PATH_VERSION} exactly when the model has the linear aggregate path "
-                             f"(linear_aggregate 1), {FORMAT_VERSION} otherwise")
+        if version > 1 and version != version_of(spec):
+            raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(spec.linear_path)} "
+                             f"and encoder_window {spec.encoder_window}",
+                             f"{ENCODER_VERSION} exactly when the model has an initial-state encoder, else "
+                             f"{LINEAR_PATH_VERSION} exactly when it has the linear aggregate path, else {FORMAT_VERSION}")
         return spec
 
     def version(self):
         """The format version, after the attributes every version has."""
         self.need("format", lambda v: isinstance(v, str) and v == FORMAT, f"'{FORMAT}'")
-        version = self.need("format_version", lambda v: _is_int(v) and v in (1, FORMAT_VERSION, LINEAR_PATH_VERSION),
-                            f"1, {FORMAT_VERSION} or {LINEAR_PATH_VERSION} (the versions this reader knows)")
+        version = self.need("format_version", lambda v: _is_int(v) and v in VERSIONS,
+                            ", ".join(map(str, VERSIONS)) + " (the versions this reader knows)")
         self.need("activation", lambda v: isinstance(v, str) and v == "tanh", "'tanh'")
         self.need("integrator", lambda v: isinstance(v, str) and v == "rk4", "'rk4' (classic 4-stage)")
         return version
@@ -115,6 +128,8 @@ def read_model(path):
     except FileNotFoundError:
         raise InputError(path, "file", "does not exist", "a model file written by `mpnode train`") from None
     except H5_DAMAGE as e:
+        if refused(e):
+            raise file_error(e, path, "read") from None
         raise InputError(path, "file", f"is not a readable HDF5 file ({e})", "an mpnode model file") from None
     try:
         with f:
@@ -164,7 +179,7 @@ def _dataset(f, path, name, shape):
 
 def spec_attrs(spec):
     """The root attributes that describe ``spec`` (format version 2, or 3 with the linear path)."""
-    version = LINEAR_PATH_VERSION if spec.linear_path else FORMAT_VERSION
+    version = version_of(spec)
     return dict(format=FORMAT, format_version=version, activation="tanh", integrator="rk4", **spec.attrs())
 
 

@@ -13,10 +13,13 @@ from dataclasses import replace
 import numpy as np
 
 from mpnode import engine
+from mpnode.base.arguments import check_int
 from mpnode.base.errors import InputError, NumericalError
 from mpnode.base.graph import Graph, block_diagonal
 from mpnode.engine import layouts
+from mpnode.engine.schedule import MAX_STEPS_PER_INTERVAL
 
+from . import encoder
 from . import file as model_file
 from .config import configured
 
@@ -59,6 +62,7 @@ class Model:
         """
         config = configured(options, config)
         spec = config.spec(state_dim, control_dim, dt, n_nodes, mean_degree)
+        seed = check_int(seed, "Model.create", "seed", 0)
         return cls(layouts.glorot_init(spec, seed=seed, dtype=np.dtype(config.dtype)), spec, attrs={"seed": seed})
 
     @classmethod
@@ -77,6 +81,16 @@ class Model:
     @property
     def kind(self):
         return self.spec.kind
+
+    @property
+    def latent_dims(self):
+        """The state dimensions beyond the data's (never observed); the data have state_dim - them."""
+        return int(self.attrs.get("latent_dims", 0))
+
+    def fitted(self, traj):
+        """``traj`` with room for this model's latent dimensions (mpnode.data.Trajectories.with_hidden_dims)."""
+        return traj.with_hidden_dims(self.latent_dims) if traj.state_dim + self.latent_dims == self.spec.state_dim \
+            else traj
 
     @property
     def dtype(self):
@@ -116,13 +130,15 @@ class Model:
                              f"(kind node) was trained on {self.spec.n_nodes}",
                              f"systems of exactly {self.spec.n_nodes} nodes (an mpnode or l2s model runs on any graph)")
 
-    def rollout(self, x0, graph, u=None, steps=None, backend="auto"):
+    def rollout(self, x0, graph, u=None, steps=None, backend="auto", times=None):
         """Simulate B trajectories from their initial states (messages start at 0).
 
-        x0 : ndarray, shape (B, N, dx) or (N, dx)
+        x0 : ndarray, shape (B, N, dx) or (N, dx), finite (for observations with values nobody
+            measured, or noisy ones, `initial_state` estimates it)
         graph : Graph shared by all B trajectories, or a list of B Graphs (each on N nodes)
         u : ndarray, shape (B, T, N, du), or None when the model has no controls
-        steps : T (defaults to u's length)
+        steps : T (defaults to u's length, or to times')
+        times : (B, T+1) the times of the outputs (NaN after a trajectory's end), or None: every dt
         backend : "auto" (the compiled kernels; the NumPy path when numba cannot be
             imported), "numba" or "numpy" (mpnode.engine.numpy_path: no numba, slower)
         returns x : ndarray, shape (B, T+1, N, dx) (or (T+1, N, dx) for a 2-D x0), in the
@@ -131,22 +147,35 @@ class Model:
         x0 = np.asarray(x0)
         single = x0.ndim == 2
         if single:
-            x0 = x0[None]
-            u = None if u is None else np.asarray(u)[None]
+            x0, u = x0[None], None if u is None else np.asarray(u)[None]
+            times = None if times is None else np.asarray(times)[None]
         if x0.ndim != 3 or x0.shape[2] != self.spec.state_dim:
             raise ValueError(f"x0 has shape {x0.shape}, expected (B, N, {self.spec.state_dim})")
-        if steps is None:
-            if u is None:
-                raise ValueError("give steps= (or controls u, whose length sets it)")
-            steps = u.shape[1]
+        steps = _steps(steps, u, times)
         b, n, dx = x0.shape
         self.check_nodes(n)
         flat = batch_graph(graph, b)
         un = None if u is None else to_time_major(self.normalize_u(np.asarray(u)))
+        iv = None if times is None else np.repeat(node_intervals(times), n, axis=1)
         xs = engine.forward(self.spec, self.theta, self.normalize_x(x0).reshape(b * n, dx), flat, un, steps,
-                            backend=backend)
+                            backend=backend, intervals=iv)
         x = self.denormalize_x(xs.reshape(steps + 1, b, n, dx).transpose(1, 0, 2, 3)).astype(self.dtype)
         return x[0] if single else x
+
+    def initial_state(self, observations, times=None):
+        """(B, N, dx) where rollouts of these trajectories start, in the data's units and the
+        model's dtype: the first of the K observations (B, K, N, dx), NaN where not observed,
+        with a model's initial-state encoder applied to all K (times (B, K), or None: every dt);
+        without an encoder, the first observation with its missing values at the data's mean."""
+        obs = np.asarray(observations, dtype=np.float64)
+        if obs.shape[-1] + self.latent_dims == self.spec.state_dim:  # the data's dimensions: room for the latent ones
+            obs = np.concatenate([obs, np.full(obs.shape[:-1] + (self.latent_dims,), np.nan)], axis=-1)
+        obs = self.normalize_x(obs)
+        b, k, n, dx = obs.shape
+        x = to_time_major(obs)
+        iv = None if times is None else np.repeat(node_intervals(times), n, axis=1)
+        z0, _ = encoder.start(self.spec, self.theta, x, iv, min(k, self.spec.encoder_window or 1))
+        return self.denormalize_x(z0.reshape(b, n, dx)).astype(self.dtype)
 
     def summary(self):
         """A JSON-ready description: kind, sizes, settings, parameter count, normalisation, attrs."""
@@ -155,7 +184,7 @@ class Model:
                 "message_dim": s.message_dim, "hidden": s.hidden, "n_nodes": s.n_nodes,
                 "aggregation": agg.mlp, "mean_degree": agg.mean_degree, "linear_aggregate": s.linear_path,
                 "linear_aggregation": agg.own_linear, "linear_target": agg.target if s.linear_path else None,
-                "dt": s.dt, "substeps": s.substeps,
+                "dt": s.dt, "substeps": s.substeps, "encoder_window": s.encoder_window,
                 "self_messages": s.self_messages, "zero_messages": s.zero_messages, "dtype": str(self.dtype),
                 "parameters": int(self.theta.size),
                 "arrays": {name: list(a.shape) for name, a in self.params.items()},
@@ -176,6 +205,23 @@ def _copies(graph, n_batch):
     graph and batch size (building it costs a good part of a short rollout).  Training batches
     and rollouts both come through here."""
     return block_diagonal([graph] * n_batch)
+
+
+def node_intervals(times):
+    """(T, B) the time from each output to the next, of B trajectories' times (B, T+1), 0 after
+    a trajectory's end (its times NaN)."""
+    return np.nan_to_num(np.diff(np.asarray(times, dtype=np.float64), axis=1), nan=0.0).T
+
+
+def _steps(steps, u, times):
+    """The number of output steps a rollout is asked for: steps, or u's or times' length."""
+    if steps is not None:
+        return steps
+    if u is not None:
+        return np.shape(u)[1]
+    if times is not None:
+        return np.shape(times)[1] - 1
+    raise ValueError("give steps= (or controls u or output times, whose length sets it)")
 
 
 def to_time_major(a):
@@ -209,6 +255,22 @@ def check_data(model, datasets, sources, allow_dt_mismatch=False):
             raise InputError(src, "u", f"has {traj.control_dim} control dimensions per node but the model has "
                              f"{s.control_dim}", f"du = {s.control_dim}")
         model.check_nodes(traj.n_nodes, src, "x")
+        _check_gaps(traj, s, src)
         if not allow_dt_mismatch and not math.isclose(traj.dt, s.dt, rel_tol=1e-9, abs_tol=0.0):
             raise InputError(src, "dt", f"is {traj.dt:g} but the model was trained with dt = {s.dt:g}",
-                             f"data saved every {s.dt:g} (or pass the flag that allows another dt)")
+                             f"data saved every {s.dt:g}; or, to evaluate the model at the file's dt, "
+                             "`mpnode eval --allow-dt-mismatch` (allow_dt_mismatch=True in Python)")
+
+
+def _check_gaps(traj, spec, source):
+    """InputError when a gap between two observations would take the model more RK4 steps than
+    the engine allows in one interval (mpnode.engine.schedule)."""
+    if traj.regular:
+        return
+    longest = float(traj.intervals().max(initial=0.0))
+    steps = math.ceil(longest * spec.substeps / spec.dt - 1e-9)
+    if steps > MAX_STEPS_PER_INTERVAL:
+        raise InputError(source, "t", f"has a gap of {longest:g}, {steps} RK4 steps of this model's "
+                         f"dt / substeps = {spec.dt / spec.substeps:g}",
+                         f"gaps of at most {MAX_STEPS_PER_INTERVAL} of the model's steps: split the trajectory "
+                         "at the gap, or a model with a larger dt")

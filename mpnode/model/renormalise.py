@@ -6,6 +6,10 @@ the input rows of x (and u) by a, shifting the first bias by c times them, and d
 output columns of dx/dt by a gives exactly the same rollouts in data units.  Fine-tuning
 on new data with their own constants then weighs each state dimension in the loss as the
 new data's spread (and `mpnode eval`'s nMSE) does, from the model it starts from.
+
+An initial-state encoder (mpnode.model.encoder) reads normalised observations and writes a
+normalised state: its value inputs and its output change the same way, which is exact where
+its window's values were observed (a value not observed reads as 0 whatever the constants).
 """
 import numpy as np
 
@@ -38,7 +42,15 @@ def _output_blocks(spec):
     out = [("W3", "b3", cols)]
     if spec.linear_path:
         out.append(("W_agg", None, cols))
+    if spec.encoder_window:
+        out.append(("E2", "e2", [slice(0, dx)]))
     return out
+
+
+def _encoder_rows(spec):
+    """The encoder's first-layer rows that read observed values: dx of them per window slot."""
+    width = 2 * spec.state_dim + 1
+    return [slice(k * width, k * width + spec.state_dim) for k in range(spec.encoder_window)]
 
 
 def renormalised(model, x_mean, x_std, u_mean=None, u_std=None):
@@ -52,10 +64,13 @@ def renormalised(model, x_mean, x_std, u_mean=None, u_std=None):
     if model.spec.control_dim and u_mean is not None:
         blocks.append((u_rows, *_affine(model.u_mean, model.u_std, u_mean, u_std)))
         out.u_mean, out.u_std = np.asarray(u_mean, np.float64).copy(), np.asarray(u_std, np.float64).copy()
-    for rows_list, a, c in blocks:
+    if model.spec.encoder_window:
+        blocks.append((_encoder_rows(model.spec), ax, cx, "E1", "e1"))
+    for rows_list, a, c, *arrays in blocks:
+        w_in, b_in = arrays or (win, bin_)
         for rows in rows_list:
-            p[bin_] = p[bin_] + c @ p[win][rows]
-            p[win][rows] = p[win][rows] * a[:, None]
+            p[b_in] = p[b_in] + c @ p[w_in][rows]
+            p[w_in][rows] = p[w_in][rows] * a[:, None]
     for w, b, cols_list in _output_blocks(model.spec):
         for cols in cols_list:
             p[w][:, cols] = p[w][:, cols] / ax

@@ -6,15 +6,15 @@ MP-NODE, the messages) between calls, so T calls of `step` give bit for bit the 
 of T steps.  Everything that does not change between steps (the batch graph, the
 engine's plan, the normalisation) is prepared once in `reset`.
 """
-import os
 
 import numpy as np
 
 from mpnode import engine
+from mpnode.base.arguments import check_path
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph, as_graph, is_networkx
 
-from .model import Model, batch_graph
+from .model import Model, batch_graph, node_intervals, to_time_major
 
 
 class Simulator:
@@ -31,9 +31,11 @@ class Simulator:
     """
 
     def __init__(self, model, graph, backend="auto"):
-        self.model = model if isinstance(model, Model) else Model.load(os.fspath(model))
+        self.model = model if isinstance(model, Model) else Model.load(check_path(model, "Simulator", "model"))
         self.graph = _as_graph(graph)
         self.model.check_nodes(self.graph.n_nodes)
+        if backend not in engine.BACKENDS:
+            raise InputError("Simulator", "backend", f"is {backend!r}", " or ".join(engine.BACKENDS))
         self.backend = engine.resolve_backend(backend)
         self.steps = 0  # steps taken since reset
         self._z = None
@@ -49,13 +51,32 @@ class Simulator:
         m, spec = self.model, self.model.spec
         x0 = np.asarray(x0)
         n = self.graph.n_nodes
-        if x0.ndim != 3 or x0.shape[1:] != (n, spec.state_dim):
-            raise ValueError(f"x0 has shape {x0.shape}, expected (B, {n}, {spec.state_dim}): "
-                             f"B copies of the graph's {n} nodes")
+        if x0.ndim != 3 or x0.shape[1:] != (n, spec.state_dim) or not x0.shape[0]:
+            raise InputError("Simulator.reset", "x0", f"has shape {x0.shape}",
+                             f"(B, {n}, {spec.state_dim}): B >= 1 copies of the graph's {n} nodes")
+        if x0.dtype.kind not in "iuf" or not np.all(np.isfinite(x0)):
+            raise InputError("Simulator.reset", "x0", "holds non-finite or non-numeric values", "finite numbers")
         self._shape = x0.shape
         self._flat = batch_graph(self.graph, x0.shape[0])  # the batch graph rollout uses: same plan
         self._z = engine.initial_state(spec, m.normalize_x(x0).reshape(-1, spec.state_dim), m.dtype)
         self.steps = 0
+        return self.state
+
+    def warm_up(self, observations, times=None, u=None):
+        """Start B copies from their first K observations (B, K, N, dx), in the data's units, NaN
+        where not observed (times (B, K), or None: every dt; u (B, K-1, N, du) between them): the
+        model estimates where they started from all K (its initial-state encoder sees them) and
+        integrates through them, so the simulator stands at the last observation, ready to step.
+        Returns that state (B, N, dx)."""
+        m, spec = self.model, self.model.spec
+        obs = np.asarray(observations, dtype=np.float64)
+        self.reset(m.initial_state(obs, times))
+        b, k, n = obs.shape[:3]
+        if k > 1:
+            iv = None if times is None else np.repeat(node_intervals(times), n, axis=1)
+            un = None if u is None else to_time_major(m.normalize_u(np.asarray(u)))
+            _, self._z = engine.integrate(spec, m.theta, self._z, self._flat, un, k - 1, backend=self.backend,
+                                          intervals=iv)
         return self.state
 
     def step(self, u=None):
@@ -64,7 +85,8 @@ class Simulator:
         if self._z is None:
             raise RuntimeError("call reset(x0) before step()")
         m, spec = self.model, self.model.spec
-        u = None if u is None else self._controls(u)[None]
+        u = self._controls(u, "Simulator.step")
+        u = None if u is None else u[None]
         _, self._z = engine.integrate(spec, m.theta, self._z, self._flat, u, 1, backend=self.backend)
         self.steps += 1
         return self.state
@@ -84,7 +106,7 @@ class Simulator:
 
         self._require_reset()
         m, spec = self.model, self.model.spec
-        un = None if u is None else self._controls(u)
+        un = self._controls(u, "Simulator.jacobians")
         jx, ju = step_jacobians(spec, m.theta, self._z, self.graph, un, sparse)
         n = self.graph.n_nodes
         sx = np.tile(m.x_std, n)  # node-major scales: d x / d xn = std
@@ -110,13 +132,20 @@ class Simulator:
             return None
         return self._z[:, spec.state_dim:].reshape(self._shape[:2] + (spec.message_dim,)).copy()
 
-    def _controls(self, u):
-        """u (B, N, du) in data units as the engine takes it: normalised, flat (B*N, du)."""
+    def _controls(self, u, where):
+        """u (B, N, du) in data units as the engine takes it: normalised, flat (B*N, du); None
+        for a model without controls.  InputError naming ``where`` otherwise."""
+        spec = self.model.spec
+        want = self._shape[:2] + (spec.control_dim,)
+        if u is None:
+            if spec.control_dim:
+                raise InputError(where, "u", f"is None, but the model takes controls (du = {spec.control_dim})",
+                                 f"controls of shape {want}")
+            return None
         u = np.asarray(u)
-        want = self._shape[:2] + (self.model.spec.control_dim,)
-        if u.shape != want:
-            raise ValueError(f"u has shape {u.shape}, expected {want}")
-        return self.model.normalize_u(u).reshape(-1, want[2])
+        if u.shape != want or u.dtype.kind not in "iuf" or not np.all(np.isfinite(u)):
+            raise InputError(where, "u", f"has shape {u.shape} and dtype {u.dtype}", f"finite numbers of shape {want}")
+        return self.model.normalize_u(u).reshape(-1, spec.control_dim)
 
     def _require_reset(self):
         if self._z is None:

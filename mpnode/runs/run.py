@@ -8,14 +8,19 @@ for the data's system, or ``paper``), then from the defaults.
 """
 import os
 
+from mpnode.base.arguments import check_bool, check_mapping, check_path, check_paths
 from mpnode.base.errors import InputError
 from mpnode.base.options import defaults, option_names
 from mpnode.data import read_trajectories
+from mpnode.engine import numba_problem
 from mpnode.model import Model
 from mpnode.model.config import ModelConfig, configured
-from mpnode.training import TrainConfig, fit
+from mpnode.model.provenance import system_mismatch
+from mpnode.training import TrainConfig, fit, state_path
 from mpnode.training.batches import TrainingData
 from mpnode.training.recipes import finetune_recipe, recipe
+from mpnode.training.sizes import check_training_memory
+from mpnode.training.state import check_resume_options
 
 #: the options of a run and their defaults: the model's and the training's
 MODEL_OPTIONS = defaults(ModelConfig)
@@ -50,10 +55,12 @@ def split_options(options, source="options"):
     return model, config
 
 
-def new_model(data, config, seed=0):
+def new_model(data, config, train_config=None):
     """A fresh model of ``config`` (a ModelConfig) for the system of ``data`` (a TrainingData): its
     dx, du and dt, a node model its N, and from the training split the normalisation and, for
-    the "scaled" aggregation, the mean in-degree."""
+    the "scaled" aggregation, the mean in-degree.  InputError first when training it under
+    ``train_config`` (default: the defaults) would need more memory than the machine has."""
+    train_config = train_config or TrainConfig()
     first = data.datasets[0]
     n_nodes = None
     if config.kind == "node":
@@ -63,8 +70,12 @@ def new_model(data, config, seed=0):
                              "one node count for a plain neural ODE (kind node)")
         n_nodes = sizes.pop()
     mean_degree = data.mean_in_degree(config.self_messages) if config.uses_mean_degree else None
-    model = Model.create(first.state_dim, first.control_dim, dt=first.dt, seed=seed, n_nodes=n_nodes,
+    spec = config.spec(first.state_dim, first.control_dim, first.dt, n_nodes, mean_degree)
+    check_training_memory(spec, data, train_config, config.dtype)
+    model = Model.create(first.state_dim, first.control_dim, dt=first.dt, seed=train_config.seed, n_nodes=n_nodes,
                          mean_degree=mean_degree, config=config)
+    if config.latent_dims:
+        model.attrs["latent_dims"] = config.latent_dims
     x_mean, x_std, u_mean, u_std = data.normalization()
     model.x_mean, model.x_std = x_mean, x_std
     if u_mean is not None:
@@ -80,11 +91,12 @@ def _attrs(paths, datasets, **more):
     return {"trained_on": ";".join(os.path.abspath(p) for p in paths), "system": datasets[0].system, **more}
 
 
-def with_recipe(options, name, system):
-    """(options completed by recipe ``name`` for ``system``, the recipe's settings used)."""
+def with_recipe(options, name, datasets):
+    """(options completed by recipe ``name`` for the system of ``datasets``, the recipe's settings used)."""
     options = canonical(options)
     model = configured({k: v for k, v in options.items() if k in MODEL_OPTIONS})
-    return fill_unset(options, recipe(name, system, model.kind, model.messages))
+    complete = all(t.complete for t in datasets)
+    return fill_unset(options, recipe(name, datasets[0].system, model.kind, model.messages, complete))
 
 
 def fill_unset(options, settings):
@@ -109,15 +121,23 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     names : what to call the files in the model's attributes and in messages (default: ``paths``;
     a sweep's worker trains on copies and names the originals).
     """
+    paths, output, options, resume = _arguments("mpnode.runs.train", paths, output, options, resume)
+    require_numba()
     datasets = datasets or read_all(paths)
-    options, chosen = with_recipe(options, recipe_name, datasets[0].system)
-    if not resume:
-        _announce(notify, chosen, f"recipe {recipe_name} for {datasets[0].system}")
+    if resume:
+        check_resume_options(state_path(output), canonical(options))
+    latent = int(canonical(options).get("latent_dims", 0) or 0)
+    datasets = [t.with_hidden_dims(latent) for t in datasets]
+    options, chosen = with_recipe(options, recipe_name, datasets)
     model_config, config = split_options(options)
     names = list(map(str, names or paths))
     data = TrainingData(datasets, config, names)
-    model = None if resume else new_model(data, model_config, config.seed)
-    attrs = _attrs(names, datasets, recipe=recipe_name, schedule=config.schedule)
+    model = None if resume else new_model(data, model_config, config)
+    if not resume:  # once every check has passed
+        _announce(notify, chosen, f"recipe {recipe_name} for {datasets[0].system}")
+    hidden = [int(k) for k in data.unmeasured_dims()]
+    attrs = _attrs(names, datasets, recipe=recipe_name, schedule=config.schedule,
+                   **({"unmeasured_dims": hidden} if hidden else {}))
     return fit(model, data, config, output, resume=resume, progress=progress, notify=notify, model_attrs=attrs)
 
 
@@ -127,16 +147,27 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
     and (unless ``refit_norm``) normalisation; model options other than substeps are the model's.
     The training options the user leaves unset come from ``recipe_name``'s fine-tuning settings.
     names, parent_name : what to call the data files and the model in attributes (see `train`)."""
+    paths, output, options, resume = _arguments("mpnode.runs.finetune", paths, output, options, resume)
+    model_path, refit_norm = check_path(model_path, "mpnode.runs.finetune", "model_path"), check_bool(
+        refit_norm, "mpnode.runs.finetune", "refit_norm")
+    require_numba()
     datasets = datasets or read_all(paths)
     options = canonical(options)
     fixed = {k for k in options if k in MODEL_OPTIONS and k != "substeps"}
     if fixed:
         raise InputError("options", sorted(fixed)[0], "cannot change when fine-tuning",
                          "only training options (and substeps); the model keeps its kind and sizes")
+    if resume:
+        check_resume_options(state_path(output), options)
     model = None if resume else Model.load(model_path)
+    if model is not None:
+        datasets = [model.fitted(t) for t in datasets]
     if not resume:
         options, chosen = fill_unset(options, finetune_recipe(recipe_name, model.kind))
         _announce(notify, chosen, f"recipe {recipe_name} for fine-tuning")
+        warning = system_mismatch(model, datasets[0].system, (names or paths)[0])
+        if warning and notify:
+            notify(f"warning: {warning}")
     model_config, config = split_options({"norm": "refit" if refit_norm else "keep", **options})
     if model is not None and "substeps" in options:
         model = model.with_spec(substeps=model_config.substeps)
@@ -145,6 +176,21 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
                    finetune_recipe=recipe_name)
     return fit(model, TrainingData(datasets, config, names), config, output, resume=resume, progress=progress,
                notify=notify, model_attrs=attrs)
+
+
+def _arguments(where, paths, output, options, resume):
+    """The common arguments of `train` and `finetune`, checked as the command line checks them."""
+    return (check_paths(paths, where), check_path(output, where, "output"), check_mapping(options, where, "options"),
+            check_bool(resume, where, "resume"))
+
+
+def require_numba():
+    """ImportError saying why, before anything is read or written, where numba cannot be
+    imported: training needs its compiled gradients (evaluation and simulation do not)."""
+    problem = numba_problem()
+    if problem is not None:
+        raise ImportError(f"training needs numba, which cannot be imported here ({problem}): install it "
+                          "(pip install numba); evaluating and simulating models work without it")
 
 
 def parse_duration(value, source="--time-limit"):

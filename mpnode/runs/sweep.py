@@ -40,6 +40,7 @@ from mpnode.base.tomlfile import load_toml
 from mpnode.training import recipes, state_path
 from mpnode.training.log import log_path
 
+from .preflight import check_out_folder, check_runs
 from .run import MODEL_OPTIONS, OPTION_NAMES, TRAIN_OPTIONS, parse_duration, split_options
 
 #: what a sweep file may hold at its top level
@@ -78,6 +79,7 @@ class Sweep:
     path: str
     runs: list  # RunPlan, parents before children
     test: list  # the sweep's test files (a run may have its own)
+    warnings: list = dataclasses.field(default_factory=list)  # what the checks allow but a user should know
 
 
 # ---------------------------------------------------------------------------
@@ -104,11 +106,13 @@ def read_sweep(path):
 
 def make_sweep(path, plans, test=()):
     """The Sweep of ``plans`` (RunPlans: read from a file, or declared in Python as the paper
-    suite does): each checked, parents before children, each keyed.  ``path`` names the sweep
-    (the summary's title; test files are named relative to its folder)."""
+    suite does): each checked, with its files (mpnode.runs.preflight), parents before children,
+    each keyed.  ``path`` names the sweep (the summary's title; test files are named relative
+    to its folder)."""
     plans = _order(plans, path)
     for p in plans:
         _check_plan(p, path)
+    warnings = check_runs(plans, path)
     files = {f for p in plans for f in p.data + p.test}
     digests = {f: file_digest(f) for f in sorted(files)}
     keys = {}
@@ -120,7 +124,7 @@ def make_sweep(path, plans, test=()):
             decided["test_points"] = p.test_points
         p.key = _digest(decided)
         keys[p.name] = p.key
-    return Sweep(path, plans, list(test))
+    return Sweep(path, plans, list(test), warnings)
 
 
 def _check_plan(p, path):
@@ -481,6 +485,7 @@ def run_sweep(sweep, out, farm, progress=None):
     task raised; "skipped" when its parent failed).  Ctrl-C: cancels what is running; what
     finished is on disk, and on the local pool a training under way resumes next time.
     """
+    check_out_folder(sweep, out)
     os.makedirs(os.path.join(out, "runs"), exist_ok=True)
     records = {p.name: load_finished(out, p) or {"name": p.name, "status": "pending"} for p in sweep.runs}
     todo = {p.name: p for p in sweep.runs if records[p.name]["status"] == "pending"}

@@ -17,12 +17,15 @@ import functools
 import json
 import math
 import zlib
+from typing import NamedTuple
 
 import numpy as np
 
 from mpnode.base.errors import InputError
 from mpnode.model import batch_graph
 from mpnode.model.renormalise import renormalised
+
+from .learnable import check_learnable
 
 
 def check_same_kind(datasets, sources):
@@ -79,16 +82,16 @@ def make_split(datasets, config):
 
 
 def fit_normalization(arrays):
-    """Per-dimension mean and std over all entries of ``arrays`` (each (..., d)).
-
-    A dimension with zero spread gets std 1.  Returns (mean, std), float64 shape (d,).
-    """
-    d = arrays[0].shape[-1]
-    count = sum(a.size // d for a in arrays)
-    total = sum(a.reshape(-1, d).sum(axis=0, dtype=np.float64) for a in arrays)
-    mean = total / count
-    sq = sum(((a.reshape(-1, d) - mean) ** 2).sum(axis=0) for a in arrays)
-    std = np.sqrt(sq / count)
+    """Per-dimension mean and std over the observed entries of ``arrays`` (each (..., d); NaN: not
+    observed).  A dimension with zero spread gets std 1, one observed nowhere mean 0 and std 1
+    (a hidden state: the model chooses its scale).  Returns (mean, std), float64 shape (d,)."""
+    flat = [a.reshape(-1, a.shape[-1]) for a in arrays]
+    seen = [~np.isnan(a) for a in flat]
+    count = sum(s.sum(axis=0) for s in seen)
+    total = sum(np.where(s, a, 0).sum(axis=0, dtype=np.float64) for a, s in zip(flat, seen))
+    mean = total / np.maximum(count, 1)
+    sq = sum(np.where(s, (a - mean) ** 2, 0).sum(axis=0) for a, s in zip(flat, seen))
+    std = np.sqrt(sq / np.maximum(count, 1))
     std[~(std > 1e-12 * np.maximum(1.0, np.abs(mean)))] = 1.0
     return mean, std
 
@@ -104,17 +107,30 @@ def fingerprint(datasets):
     return json.dumps(out, sort_keys=True)
 
 
+class Batch(NamedTuple):
+    """What the engine trains on: x (T+1, M, dx) normalised, NaN where not observed; u (T, M, du)
+    or None; the block-diagonal graph; intervals (T, M) between observations, or None (every dt)."""
+
+    x: np.ndarray
+    u: np.ndarray
+    graph: object
+    intervals: np.ndarray
+
+
 class Part:
     """Trajectories of one file on one side of the split, normalised and time-major for the engine.
 
-    x : ndarray, shape (T+1, B, N, dx), model dtype;  u : (T, B, N, du) or None
+    x : ndarray, shape (T+1, B, N, dx), model dtype, NaN where not observed;  u : (T, B, N, du) or None
+    iv : (T, B) time between consecutive observations (0 after a trajectory's end), or None when
+        the file is regular (every dt)
     gi : ndarray, shape (B,), each trajectory's graph;  graphs : the file's graphs
     index : ndarray, shape (B,), each trajectory's number in its file
     source : the file's name (validation figures are reported per file)
     """
 
-    def __init__(self, x, u, gi, graphs, index, source=None):
+    def __init__(self, x, u, gi, graphs, index, source=None, iv=None):
         self.x, self.u, self.gi, self.graphs, self.index, self.source = x, u, gi, graphs, index, source
+        self.iv = iv
         self.n = x.shape[1]
         self.n_nodes = x.shape[2]
         self.single_graph = len(graphs) == 1 or len(np.unique(gi)) <= 1
@@ -127,9 +143,11 @@ class Part:
             x = (x + rng.standard_normal(x.shape) * noise_std).astype(model.dtype)
         u = None
         if traj.u is not None:
-            u = np.ascontiguousarray(model.normalize_u(np.asarray(traj.u)[idx]).transpose(1, 0, 2, 3))
+            u = np.nan_to_num(model.normalize_u(np.asarray(traj.u)[idx]), nan=0.0)  # past a trajectory's end
+            u = np.ascontiguousarray(u.transpose(1, 0, 2, 3))
+        iv = None if traj.regular else np.ascontiguousarray(traj.intervals()[idx].T)
         return cls(np.ascontiguousarray(x.transpose(1, 0, 2, 3)), u, np.asarray(traj.graph_index)[idx],
-                   traj.graphs, idx, source)
+                   traj.graphs, idx, source, iv)
 
     def windows(self, window):
         """The windows of ``window`` steps of every trajectory (module docstring) as a new Part:
@@ -137,14 +155,16 @@ class Part:
         t1, b, n, dx = self.x.shape
         starts = window_starts(t1 - 1, window)
         w, nw = min(window, t1 - 1), len(starts)
-        x = np.ascontiguousarray(np.stack([self.x[a:a + w + 1] for a in starts], axis=2)).reshape(w + 1, b * nw, n, dx)
-        u = None
-        if self.u is not None:
-            u = np.ascontiguousarray(np.stack([self.u[a:a + w] for a in starts], axis=2)).reshape(w, b * nw, n, -1)
-        return Part(x, u, np.repeat(self.gi, nw), self.graphs, np.repeat(self.index, nw))
+
+        def cut(a, steps):  # (steps of each window, b * nw, ...)
+            return np.ascontiguousarray(np.stack([a[s:s + steps] for s in starts], axis=2)).reshape(
+                (steps, b * nw) + a.shape[2:])
+
+        return Part(cut(self.x, w + 1), None if self.u is None else cut(self.u, w), np.repeat(self.gi, nw),
+                    self.graphs, np.repeat(self.index, nw), self.source, None if self.iv is None else cut(self.iv, w))
 
     def batch(self, sel):
-        """(x (T+1, b*N, dx), u (T, b*N, du) or None, graph) for local trajectory numbers ``sel``.
+        """The Batch of local trajectory numbers ``sel``.
 
         Trajectories are grouped by graph inside the batch (the loss is a sum, so order is
         free): runs of copies of one small graph let the kernels aggregate densely.
@@ -155,7 +175,8 @@ class Part:
         t1, _, n, dx = self.x.shape
         x = np.take(self.x, sel, axis=1).reshape(t1, b * n, dx)
         u = None if self.u is None else np.take(self.u, sel, axis=1).reshape(t1 - 1, b * n, -1)
-        return x, u, self.graph(sel)
+        iv = None if self.iv is None else np.repeat(self.iv[:, sel], n, axis=1)
+        return Batch(x, u, self.graph(sel), iv)
 
     def graph(self, sel):
         """The batch's block-diagonal graph (copies of one graph come from batch_graph's cache)."""
@@ -182,10 +203,18 @@ class TrainingData:
         self.split_settings = split_settings(config)
         self.split = make_split(self.datasets, config)
         self.fingerprint = fingerprint(self.datasets)
+        check_learnable(self, config)
 
     def training(self, field):
-        """Every file's training trajectories of ``field`` ("x" or "u")."""
-        return [np.asarray(getattr(t, field))[tr] for t, (tr, _) in zip(self.datasets, self.split)]
+        """Every file's training trajectories of ``field`` ("x" or "u"), NaN where not observed."""
+        out = []
+        for traj, (tr, _) in zip(self.datasets, self.split):
+            a = np.asarray(getattr(traj, field))[tr]
+            if not traj.regular:  # past a trajectory's end nothing counts
+                inside = np.arange(a.shape[1])[None, :] < (traj.lengths[tr] - (field == "u"))[:, None]
+                a = np.where(inside[:, :, None, None], a, np.nan)
+            out.append(a)
+        return out
 
     @functools.cached_property
     def _normalization(self):
@@ -197,6 +226,10 @@ class TrainingData:
     def normalization(self):
         """(x_mean, x_std, u_mean, u_std) of the training split (u's None without controls), copies."""
         return tuple(None if a is None else a.copy() for a in self._normalization)
+
+    def unmeasured_dims(self):
+        """The state dimensions the training split observes nowhere (hidden states of the model)."""
+        return np.flatnonzero(np.all([np.isnan(a).all(axis=(0, 1, 2)) for a in self.training("x")], axis=0))
 
     def mean_in_degree(self, self_messages):
         """The mean in-degree over every node of every training trajectory (+1 when nodes hear

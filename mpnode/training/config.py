@@ -3,6 +3,7 @@ and its checks (the command line's training flags and the sweep's keys are these
 import math
 from dataclasses import dataclass
 
+from mpnode.base.arguments import check_int, check_number
 from mpnode.base.errors import InputError
 from mpnode.base.options import option
 
@@ -59,9 +60,14 @@ class TrainConfig:
         def bad(name, problem, expected):
             raise InputError("training options", name, problem, expected)
 
-        self.curriculum = tuple(int(w) for w in self.curriculum)
-        if any(w < 1 for w in self.curriculum):
-            bad("curriculum", f"is {list(self.curriculum)}", "window lengths >= 1 (steps)")
+        self._check_types()
+        try:
+            windows = tuple(int(w) for w in self.curriculum)
+        except (TypeError, ValueError):
+            windows = (0,)
+        if any(w < 1 for w in windows) or any(isinstance(w, (bool, float)) for w in self.curriculum):
+            bad("curriculum", f"is {self.curriculum!r}", "window lengths >= 1 (steps), e.g. (5, 10)")
+        self.curriculum = windows
         if self.curriculum_epochs < 1:
             bad("curriculum_epochs", f"is {self.curriculum_epochs}", "an integer >= 1")
 
@@ -96,6 +102,22 @@ class TrainConfig:
         if self.val_graphs < 0:
             bad("val_graphs", f"is {self.val_graphs}", "an integer >= 0")
         return self
+
+    def _check_types(self):
+        """Every option of the right type and sign (the ranges that need more are checked in `check`)."""
+        where = "training options"
+        for name in ("epochs", "batch_size", "patience", "max_bad_steps", "seed", "curriculum_epochs", "val_graphs"):
+            setattr(self, name, check_int(getattr(self, name), where, name, 0))
+        for name in ("lr", "beta1", "beta2", "eps", "clip", "val_split", "noise", "lr_decay", "min_lr", "blowup",
+                     "checkpoint_seconds"):
+            setattr(self, name, check_number(getattr(self, name), where, name, least=0))
+        for name in ("beta1", "beta2"):
+            if not getattr(self, name) < 1:
+                raise InputError(where, name, f"is {getattr(self, name)}", "a number in [0, 1)")
+        if self.time_limit is not None:
+            self.time_limit = check_number(self.time_limit, where, "time_limit", positive=True)
+        if not isinstance(self.curriculum, (tuple, list)):
+            raise InputError(where, "curriculum", f"is {self.curriculum!r}", "a list of window lengths, e.g. (5, 10)")
 
 
 def curriculum_stage(config, epoch):

@@ -3,6 +3,7 @@
 Every line is written by one write() on an O_APPEND descriptor, so a run killed at any
 moment (SIGKILL, power) leaves whole lines only.
 """
+import contextlib
 import json
 import math
 import os
@@ -10,6 +11,7 @@ import os
 import numpy as np
 
 from mpnode.base.atomic import atomic_path
+from mpnode.base.oserrors import file_error
 
 
 def log_path(output):
@@ -44,14 +46,24 @@ class TrainLog:
         if self.fd is None:
             return
         data = _line(record).encode()
-        written = os.write(self.fd, data)
-        while written < len(data):  # not seen for regular files; finish rather than tear the line
-            written += os.write(self.fd, data[written:])
+        try:
+            written = os.write(self.fd, data)
+            while written < len(data):  # not seen for regular files; finish rather than tear the line
+                written += os.write(self.fd, data[written:])
+        except OSError as e:  # a full disk: the caller stops the run
+            raise file_error(e, self.path, "append to the training log") from None
 
     def close(self):
         if self.fd is not None:
             os.close(self.fd)
             self.fd = None
+
+    def remove(self):
+        """Close and delete the log (a run that stopped before it saved anything leaves no log)."""
+        self.close()
+        if self.path is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(self.path)
 
 
 def _line(record):

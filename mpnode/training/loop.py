@@ -32,10 +32,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mpnode import engine
+from mpnode.base.atomic import atomic_paths
 from mpnode.base.errors import InputError
+from mpnode.base.oserrors import FileSystemError, file_error
 from mpnode.engine import layouts
 from mpnode.evaluation import metrics
-from mpnode.model import check_data
+from mpnode.model import check_data, encoder
 
 from . import losses
 from .batches import TrainingData, epoch_batches, split_settings
@@ -109,9 +111,11 @@ def run_epoch(state, parts, notify):
     grad = np.empty(theta.size)
     new_theta = np.empty_like(theta)
     stats = EpochStats()
+    rng = np.random.default_rng([config.seed, 5, state.epoch + 1])
     for p, sel in epoch_batches(parts, config.batch_size, config.seed, state.epoch + 1):
-        x, u, g = parts[p].batch(sel)
-        loss, gtheta, _ = losses.value_and_grad(spec, theta, x, g, u, config.loss)
+        batch = parts[p].batch(sel)
+        visible = warmups(rng, spec.encoder_window, len(sel), parts[p].n_nodes)
+        loss, gtheta = losses.batch_value_and_grad(spec, theta, batch, config.loss, visible)
         grad[:] = gtheta
         problem = bad_loss(loss, grad, state.ref_loss, config)
         if problem is None:
@@ -124,8 +128,17 @@ def run_epoch(state, parts, notify):
             bad_step(state, problem, notify)
             continue
         theta[:] = new_theta
-        stats.add(loss, x.shape[1], norm)
+        stats.add(loss, batch.x.shape[1], norm)
     return stats
+
+
+def warmups(rng, window, n_trajectories, n_nodes):
+    """How many of its first observations the initial-state encoder sees, per node of a batch:
+    1..W at random per trajectory, so that it learns to start from a warm-up of any length up
+    to its window (0 for a model without an encoder)."""
+    if not window:
+        return 0
+    return np.repeat(rng.integers(1, window + 1, size=n_trajectories), n_nodes)
 
 
 def bad_loss(loss, grad, ref_loss, config):
@@ -190,29 +203,33 @@ def cosine_lr(config, used):
 # ---------------------------------------------------------------------------
 class Validator:
     """Full-horizon rollouts of the validation parts (no noise): the loss per node, and per file
-    the normalised MSE `mpnode eval` would report (mpnode.evaluation.metrics, steps 1..T)."""
+    the normalised MSE `mpnode eval` would report (mpnode.evaluation.metrics: the observed values
+    of steps 1..T).  A model with an initial-state encoder sees each trajectory's whole window."""
 
     def __init__(self, parts, loss, chunk=8192):
         self.loss = loss
-        self.parts = []  # (source, trajectories, variance per dimension, [(x, u, graph) chunks])
+        self.parts = []  # (source, trajectories, variance per dimension, [Batch chunks])
         for part in parts:
             size = max(1, chunk // part.n_nodes)
             jobs = [part.batch(np.arange(i, min(i + size, part.n))) for i in range(0, part.n, size)]
             self.parts.append((part.source, part.n, metrics.variance(part.x), jobs))
-        self.n_nodes = sum(x.shape[1] for *_, jobs in self.parts for x, _, _ in jobs)
+        self.n_nodes = sum(b.x.shape[1] for *_, jobs in self.parts for b in jobs)
 
     def __call__(self, spec, theta):
         """(loss, per-file figures); the loss is inf when a rollout is non-finite."""
         total, files = 0.0, []
         for source, n, var, jobs in self.parts:
-            steps = 0.0
-            for x, u, g in jobs:
-                pred = engine.forward(spec, theta, x[0], g, u, x.shape[0] - 1)
-                total += losses.value(pred, x, self.loss) * x.shape[1]
-                steps = steps + metrics.normalised_sq_error(pred[1:], x[1:], var=var).sum(axis=(1, 2))
-            count = sum(x.shape[1] for x, _, _ in jobs) * len(var)  # node rows times dimensions
-            files.append({"file": source, "trajectories": n, "nmse": float(steps.mean() / count),
-                          "nmse_last": float(steps[-1] / count)})
+            sums, counts = 0.0, 0
+            for b in jobs:
+                x0, _ = encoder.start(spec, theta, b.x, b.intervals, spec.encoder_window)
+                pred = engine.forward(spec, theta, x0, b.graph, b.u, b.x.shape[0] - 1, intervals=b.intervals)
+                total += losses.value(pred, b.x, self.loss) * b.x.shape[1]
+                err = metrics.normalised_sq_error(pred[1:], b.x[1:], var=var)
+                sums = sums + np.where(np.isnan(err), 0, err).sum(axis=(1, 2))
+                counts = counts + (~np.isnan(err)).sum(axis=(1, 2))
+            with np.errstate(invalid="ignore"):
+                files.append({"file": source, "trajectories": n, "nmse": float(sums.sum() / counts.sum()),
+                              "nmse_last": float(sums[-1] / counts[-1])})
         return total / self.n_nodes, files
 
 
@@ -279,15 +296,20 @@ def fit(model, data, config=None, output=None, *, sources=None, resume=False, pr
                f"{state.best_epoch}, learning rate {state.opt.lr:g})")
     else:
         history = log.start(first_record=first_epoch(state, validate))
-        save_best(state, output, attrs)
-        if progress:
-            progress(history[0])
-    loop = _Loop(state, Curriculum(config, train_parts, notify), validate, log, output, attrs, progress, notify)
+    loop = _Loop(state, Curriculum(config, train_parts, notify), validate, log, output, attrs, progress, notify,
+                 resume)
     try:
+        if not resume:
+            loop.save(force=True)  # epoch 0: the model and the checkpoint, so that they always agree
+            loop.last_save = -math.inf  # and the first epoch's at once: a run killed early resumes from it
+            if progress:
+                progress(history[0])
         status, message = loop.run(history)
+        loop.save(force=True)  # the best model, and the last finished epoch for resume
+    except FileSystemError as e:
+        raise loop.stopped(e) from None
     finally:
         log.close()
-    loop.save(force=True)  # the best model, and the last finished epoch for resume
     if status == "completed" and resume and loop.epochs_run == 0:
         message = f"nothing to do: the run already has {state.epoch} epochs (raise --epochs to continue)"
     return TrainResult(state.best_model(**attrs, epoch=state.best_epoch, val_loss=state.best_val), status, message,
@@ -349,28 +371,47 @@ def save_best(state, output, attrs):
 class _Loop:
     """The epochs of `fit`: run, validate, log, save, until the budget or a stop."""
 
-    def __init__(self, state, curriculum, validate, log, output, attrs, progress, notify):
+    def __init__(self, state, curriculum, validate, log, output, attrs, progress, notify, resumed):
         self.state, self.curriculum, self.validate, self.log = state, curriculum, validate, log
         self.output, self.attrs, self.progress, self.notify = output, attrs, progress, notify
         self.t_start, self.elapsed_before = time.perf_counter(), state.elapsed
         self.snap = state.snapshot()
         self.epochs_run = 0
-        self.last_save, self.saved_best = -math.inf, state.best_epoch
+        # what is on disk: a resumed run's checkpoint and model; nothing yet of a new run
+        self.saved_epoch = state.epoch if resumed else None
+        self.last_save, self.saved_best = -math.inf, state.best_epoch if resumed else None
 
     def elapsed(self):
         return self.elapsed_before + time.perf_counter() - self.t_start
 
     def save(self, force=False):
-        """The best model (when it changed) and the checkpoint, at most every checkpoint_seconds
-        unless forced: writing both after every improving epoch costs a small run a large share of each epoch."""
+        """The checkpoint, and the best model with it when that changed, at most every
+        checkpoint_seconds unless forced: writing both after every improving epoch costs a small
+        run a large share of each epoch.  The two are written as a pair (mpnode.base.atomic):
+        a failure (a full disk) leaves the previous pair, which agree."""
         now = time.perf_counter()
         if self.output is None or not (force or now - self.last_save >= self.state.config.checkpoint_seconds):
             return
-        if self.state.best_epoch != self.saved_best:
-            save_best(self.state, self.output, self.attrs)
+        checkpoint = state_path(self.output)
+        if self.state.best_epoch == self.saved_best:
+            TrainState.save(checkpoint, self.snap)
+        else:
+            with atomic_paths(self.output, checkpoint) as (model_tmp, checkpoint_tmp):
+                save_best(self.state, model_tmp, self.attrs)
+                TrainState.write(checkpoint_tmp, self.snap)
             self.saved_best = self.state.best_epoch
-        TrainState.save(state_path(self.output), self.snap)
-        self.last_save = now
+        self.last_save, self.saved_epoch = now, int(self.snap["epoch"])
+
+    def stopped(self, error):
+        """``error`` (a file that could not be written) saying where the run stopped and what is on disk."""
+        if self.saved_epoch is None:
+            left = "Training stopped before anything was saved"
+            self.log.remove()
+        else:
+            left = (f"Training stopped after epoch {self.state.epoch}; {self.output} and its checkpoint "
+                    f"{state_path(self.output)} are those of epoch {self.saved_epoch}, written together: once the "
+                    "file can be written, continue with the same command plus --resume")
+        return file_error(error, error.filename, error.doing, left=left)
 
     def run(self, history):
         """Returns (status, message): completed, time_limit, diverged or interrupted."""

@@ -1,8 +1,9 @@
 """Training losses on rollouts, written once in NumPy on top of the engine's VJP.
 
 A loss compares a rollout ``pred`` with the truth ``x``, both (T+1, M, dx) in the
-model's normalised units: summed over steps 1..T and state dimensions, divided by the
-number of nodes (the rollouts of a batch are averaged per node).  Each loss returns its
+model's normalised units: summed over the observed entries of steps 1..T (NaN in ``x`` is a
+value nobody observed: it adds nothing) and divided by the number of nodes (the rollouts of a
+batch are averaged per node).  Each loss returns its
 value and its cotangent with respect to ``pred``; `value_and_grad` turns that into the
 gradient of the parameters and initial states through `engine.forward_with_vjp`.
 """
@@ -11,6 +12,7 @@ import math
 import numpy as np
 
 from mpnode import engine
+from mpnode.model import encoder
 from mpnode.model.model import batch_graph, to_time_major
 
 
@@ -19,7 +21,7 @@ def huber(pred, x, n_nodes):
 
     With c = clip(e, -1, 1), huber(e) = c (e - c / 2) and its derivative is c.
     """
-    e = pred[1:] - x[1:]
+    e = _error(pred, x)
     c = np.clip(e, -1.0, 1.0)
     value = float(np.sum(c * (e - 0.5 * c), dtype=np.float64)) / n_nodes
     return value, _cotangent(pred, c, 1.0 / n_nodes)
@@ -27,9 +29,15 @@ def huber(pred, x, n_nodes):
 
 def mse(pred, x, n_nodes):
     """Squared error of pred - x: (value, cotangent like pred)."""
-    e = pred[1:] - x[1:]
+    e = _error(pred, x)
     value = float(np.sum(e * e, dtype=np.float64)) / n_nodes
     return value, _cotangent(pred, e, 2.0 / n_nodes)
+
+
+def _error(pred, x):
+    """pred - x at steps 1..T, 0 where x was not observed (NaN)."""
+    e = pred[1:] - x[1:]
+    return np.where(np.isnan(e), e.dtype.type(0), e)
 
 
 def _cotangent(pred, de, scale):
@@ -50,17 +58,32 @@ def value(pred, x, loss="huber", n_nodes=None):
     return LOSSES[loss](pred.astype(np.float64), x, n_nodes or x.shape[1])[0]
 
 
-def value_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes=None, driver="auto"):
-    """Loss of the rollout from x[0] against x[1..T], and its exact gradient.
+def value_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes=None, driver="auto", x0=None,
+                   intervals=None):
+    """Loss of the rollout from x0 against x[1..T], and its exact gradient.
 
-    x : ndarray, shape (T+1, M, dx), the true states (x[0] is the initial state);
-    u : (T, M, du) or None; n_nodes : the divisor (default M; a part of a batch passes
-    the batch's).  Returns (loss, gtheta like theta, gx0 of shape (M, dx)).
+    x : ndarray, shape (T+1, M, dx), the true states, NaN where not observed;
+    x0 : (M, dx) the initial state (default x[0], a value not observed taken as 0: the data's mean);
+    u : (T, M, du) or None; intervals : (T, M) times between outputs or None (every dt);
+    n_nodes : the divisor (default M; a part of a batch passes the batch's).
+    Returns (loss, gtheta like theta, gx0 of shape (M, dx)).
     """
-    pred, vjp = engine.forward_with_vjp(spec, theta, x[0], graph, u, x.shape[0] - 1, driver)
+    x0 = np.nan_to_num(x[0], nan=0.0) if x0 is None else x0
+    pred, vjp = engine.forward_with_vjp(spec, theta, x0, graph, u, x.shape[0] - 1, driver, intervals=intervals)
     total, gpred = LOSSES[loss](pred, np.asarray(x, dtype=pred.dtype), n_nodes or x.shape[1])
     gtheta, gx0 = vjp(gpred)
     return total, gtheta, gx0
+
+
+def batch_value_and_grad(spec, theta, batch, loss, visible):
+    """Loss and exact gradient of a training Batch (mpnode.training.batches), from the initial
+    states the model's encoder estimates from the first ``visible`` observations (or the first
+    observation itself, without an encoder): the encoder's weights get their gradient too."""
+    x0, cache = encoder.start(spec, theta, batch.x, batch.intervals, visible)
+    total, gtheta, gx0 = value_and_grad(spec, theta, batch.x, batch.graph, batch.u, loss, x0=x0,
+                                        intervals=batch.intervals)
+    encoder.gradient(spec, theta, cache, gx0, gtheta)
+    return total, gtheta
 
 
 def loss_and_grad(model, x, graph, u=None, loss="huber"):

@@ -26,6 +26,11 @@ AUTO = {
     "gene": {"aggregation": "mean", "linear_aggregation": "scaled", "linear_target": "state", "val_graphs": 1},
 }
 
+#: what recipe auto adds for data as they come (values not observed, irregular times): an
+#: initial-state encoder that estimates what was not measured from a trajectory's first
+#: observations (mpnode.model.encoder; docs/evidence/imperfect-data.md)
+AUTO_IMPERFECT = {"encoder_window": 5}
+
 #: what recipe auto changes from the paper's when `mpnode finetune` continues an MP-NODE model (it
 #: keeps its kind, sizes and aggregation, so only training options belong here): a fine-tuning set
 #: of a few dozen trajectories is one batch of 128, one Adam step an epoch; batches of 8 take
@@ -43,15 +48,17 @@ def _check(name):
         raise InputError("--recipe", str(name), "is not a recipe", " or ".join(NAMES))
 
 
-def recipe(name, system, kind="mpnode", messages=True):
+def recipe(name, system, kind="mpnode", messages=True, complete=True):
     """The settings of recipe ``name`` for data of ``system`` and a model of ``kind`` (a dict of
-    runs options).  Aggregation and the linear path only concern MP-NODE models with messages;
-    l2s keeps its sum unless told, and node models the paper's batch size.  val_graphs
-    only acts on files with more graphs than it (otherwise the split is random)."""
+    runs options); ``complete``: the data are regular and every value observed.  Aggregation and
+    the linear path only concern MP-NODE models with messages; l2s keeps its sum unless told,
+    and node models the paper's batch size.  val_graphs only acts on files with more graphs
+    than it (otherwise the split is random)."""
     _check(name)
     settings = dict(PAPER)
     if name == "auto":
         settings.update(AUTO_ALL if kind in AUTO_ALL_KINDS else {}, **AUTO.get(system, {}))
+        settings.update({} if complete else AUTO_IMPERFECT)
     if kind != "mpnode":
         settings.pop("aggregation")
     if kind != "mpnode" or not messages:
@@ -65,7 +72,7 @@ def tables(name):
     _check(name)
     if name == "paper":
         return {"paper": PAPER}
-    return {"paper": PAPER, "all": AUTO_ALL, "systems": AUTO, "finetune": FINETUNE_AUTO}
+    return {"paper": PAPER, "all": AUTO_ALL, "systems": AUTO, "imperfect": AUTO_IMPERFECT, "finetune": FINETUNE_AUTO}
 
 
 def finetune_recipe(name, kind="mpnode"):

@@ -86,9 +86,15 @@ class TrainState:
 
     @staticmethod
     def save(path, snap):
+        """Write the checkpoint ``snap`` (a `snapshot`) to ``path`` atomically."""
         with atomic_path(path) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **snap)
+            TrainState.write(tmp, snap)
+
+    @staticmethod
+    def write(path, snap):
+        """Write ``snap`` to ``path`` as it is (the caller makes the write atomic)."""
+        with open(path, "wb") as f:
+            np.savez(f, **snap)
 
     @classmethod
     def load(cls, path):
@@ -110,6 +116,58 @@ class TrainState:
         self.lr_scale = float(state.get("lr_scale", 1.0))
         self.best_files = json.loads(str(state.get("best_files", "[]")))
         return self
+
+
+#: the options a resumed run takes from the command line; every other comes from the checkpoint
+RESUME_OPTIONS = ("epochs", "time_limit")
+
+
+def check_resume_options(path, options):
+    """InputError naming the first of ``options`` (the options the user set, under their own
+    names) that contradicts the run whose checkpoint is at ``path``: a resumed run keeps its
+    settings, so a different value would be silently ignored."""
+    state = load_state(path)
+    config = json.loads(str(state["config"]))
+    spec = FieldSpec.from_attrs(json.loads(str(state["spec"])))
+    model = model_config_of(spec, state["theta"].dtype)
+    for name, value in options.items():
+        if name in RESUME_OPTIONS:
+            continue
+        if name in config:
+            was, same = config[name], _plain(config[name]) == _plain(value)
+        else:
+            was, same = getattr(model, name), _same_model(model, spec, name, value)
+        if not same:
+            flag = "--" + name.replace("_", "-")
+            raise InputError(flag, value, f"contradicts the run being resumed: its checkpoint {path} has "
+                             f"{name} = {was}", f"no {flag} with --resume (the run keeps its settings; only "
+                             "--epochs and --time-limit change), or another -o to start a new run")
+
+
+def model_config_of(spec, dtype):
+    """The ModelConfig that makes ``spec`` (with weights of ``dtype``)."""
+    from mpnode.model.config import ModelConfig
+
+    agg = spec.aggregation
+    return ModelConfig(kind=spec.kind, message_dim=spec.message_dim, hidden=spec.hidden, aggregation=agg.mlp,
+                       linear_aggregate=spec.linear_path, linear_aggregation=agg.own_linear,
+                       linear_target=agg.target, self_messages=spec.self_messages,
+                       zero_messages=spec.zero_messages, substeps=spec.substeps, dtype=np.dtype(dtype).name)
+
+
+def _same_model(model, spec, name, value):
+    """Whether setting model option ``name`` to ``value`` leaves the model of ``spec`` as it is."""
+    try:
+        other = dataclasses.replace(model, **{name: value})
+        again = other.spec(spec.state_dim, spec.control_dim, spec.dt, spec.n_nodes, spec.aggregation.mean_degree)
+    except (InputError, TypeError, ValueError):
+        return False
+    return again == spec and other.dtype == model.dtype
+
+
+def _plain(value):
+    """A value as JSON has it (tuples become lists), so that options compare as the checkpoint stores them."""
+    return json.loads(json.dumps(value, default=str))
 
 
 def load_state(path):

@@ -17,14 +17,20 @@ Two drivers per direction, sharing every tile function:
 - *stagewise* drivers: one large connected graph; every phase of a stage is a parallel
   loop over tiles of nodes.
 
+Time.  Output step t (t = 0..T-1) is reached by ``nsub[t]`` RK4 steps, node i's of size
+``hstep[t, i]``: every node of a trajectory has its trajectory's step size, so a batch whose
+trajectories are observed at different times is integrated together (a regular batch has
+nsub[t] = substeps and one step size everywhere; a trajectory that has ended has size 0).
+
 The forward drivers start from a full state z0 (M, dz) and return the final one in
 ``zend`` (a rollout continues exactly where the last one stopped); they keep the state
-after every RK4 step when given a ``states`` array (T*substeps+1, M, dz); the reverse drivers take the cotangent of every output state,
-GX (T+1, M, dx), recompute each step's stages from the kept state and return the
-parameter cotangent (one buffer per block or tile, reduced by the caller: deterministic,
-no races), the initial state's and, when the caller gives GU (T, M, du) rows, the controls'
-(each node's rows are its own: no races either).  ``dims``: the model's integers (slots in mpnode.engine.dims);
-``graph`` = (indptr, indices, weight), ``tgraph`` = (tindptr, tindices) its transpose.
+after every RK4 step when given a ``states`` array (sum(nsub)+1, M, dz); the reverse
+drivers take the cotangent of every output state, GX (T+1, M, dx), recompute each step's
+stages from the kept state and return the parameter cotangent (one buffer per block or
+tile, reduced by the caller: deterministic, no races), the initial state's and, when the
+caller gives GU (T, M, du) rows, the controls' (each node's rows are its own: no races
+either).  ``dims``: the model's integers (slots in mpnode.engine.dims); ``graph`` =
+(indptr, indices, weight), ``tgraph`` = (tindptr, tindices) its transpose.
 """
 import numpy as np
 from numba import njit, prange
@@ -92,19 +98,22 @@ def dense_block(dense_A, n, off):
 @njit(**JIT)
 def fold_tile(stage, h, K, z, zout, acc, i0, i1, zoff):
     """Fold k of nodes i0..i1 into the step: stages 0..2 write the next stage's input
-    ``zout = z + C[s+1] h k`` and the running sum ``acc``; stage 3 finishes ``z += h/6 (acc + k)``."""
+    ``zout = z + C[s+1] h k`` and the running sum ``acc``; stage 3 finishes ``z += h/6 (acc + k)``.
+    h (M,): node i's step size (every node of a trajectory has its trajectory's)."""
     dz = z.shape[1]
     if stage == 3:
-        c = h * z.dtype.type(RK_B[3])
+        b3 = z.dtype.type(RK_B[3])
         for r in range(i1 - i0):
             zi = i0 + r - zoff
+            c = h[i0 + r] * b3
             for d in range(dz):
                 z[zi, d] += c * (acc[zi, d] + K[r, d])
         return
-    c = h * z.dtype.type(RK_C[stage + 1])
+    cs = z.dtype.type(RK_C[stage + 1])
     if stage == 0:  # acc = k1 (acc's old contents are not read: they may be anything)
         for r in range(i1 - i0):
             zi = i0 + r - zoff
+            c = h[i0 + r] * cs
             for d in range(dz):
                 acc[zi, d] = K[r, d]
                 zout[zi, d] = z[zi, d] + c * K[r, d]
@@ -112,6 +121,7 @@ def fold_tile(stage, h, K, z, zout, acc, i0, i1, zoff):
         two = z.dtype.type(2)
         for r in range(i1 - i0):
             zi = i0 + r - zoff
+            c = h[i0 + r] * cs
             for d in range(dz):
                 acc[zi, d] += two * K[r, d]
                 zout[zi, d] = z[zi, d] + c * K[r, d]
@@ -173,13 +183,15 @@ def substep_range(h, theta, dims, z, za, zb, acc, u, graph, lo, hi, zoff, A, sum
 @njit(**JIT)
 def k_cotangent(stage, h, a, gnext, i0, i1, zoff):
     """Cotangent of k_s for nodes i0..i1: B[s] h a + C[s+1] h gnext (a: of the step's result,
-    gnext: of the next stage's input)."""
+    gnext: of the next stage's input; h (M,) the nodes' step sizes)."""
     n, dz = i1 - i0, a.shape[1]
     GK = np.empty((n, dz), a.dtype)
-    wb = h * a.dtype.type(RK_B[stage])
-    wc = h * a.dtype.type(RK_C[stage + 1]) if stage < 3 else a.dtype.type(0)
+    cb = a.dtype.type(RK_B[stage])
+    cc = a.dtype.type(RK_C[stage + 1]) if stage < 3 else a.dtype.type(0)
     for r in range(n):
         zi = i0 + r - zoff
+        wb = h[i0 + r] * cb
+        wc = h[i0 + r] * cc
         for d in range(dz):
             GK[r, d] = wb * a[zi, d]
         if stage < 3:
@@ -262,8 +274,7 @@ def _block_work(dims, n, like):
 
 
 @njit(parallel=True, **JIT)
-def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, dense_A, substeps, h, out, states,
-                   zend):
+def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, dense_A, nsub, hstep, out, states, zend):
     """Forward rollout from the full state z0: x at every output step into ``out``, the final z into zend."""
     dx = dims[DX]
     T = out.shape[0] - 1
@@ -278,18 +289,20 @@ def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, den
         out[0, lo:hi] = z0[lo:hi, :dx]
         if keep:
             states[0, lo:hi] = z
+        k = 0
         for t in range(T):
-            for s in range(substeps):
-                substep_range(h, theta, dims, z, za, zb, acc, U[t], graph, lo, hi, lo, A, sums, C)
+            for s in range(nsub[t]):
+                substep_range(hstep[t], theta, dims, z, za, zb, acc, U[t], graph, lo, hi, lo, A, sums, C)
+                k += 1
                 if keep:
-                    states[t * substeps + s + 1, lo:hi] = z
+                    states[k, lo:hi] = z
             out[t + 1, lo:hi] = z[:, :dx]
         zend[lo:hi] = z
 
 
 @njit(parallel=True, **JIT)
-def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, dense_A, dense_AT, substeps, h,
-               states, GX, gthetas, gx0, GU):
+def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, dense_A, dense_AT, nsub, hstep, states,
+               GX, gthetas, gx0, GU):
     """Reverse pass: cotangents GX (T+1, M, dx) of the output states -> gthetas[b] (block b's
     parameter cotangent) and gx0 (M, dx); the controls' cotangent added into GU (T, M, du)
     unless GU has no rows (T, 0, du).  ``states`` from rollout_blocks."""
@@ -310,11 +323,13 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
         gtheta = gthetas[b]
         gtheta[:] = 0
         gz = np.zeros_like(z)
+        k = states.shape[0] - 1
         for t in range(T - 1, -1, -1):
             gz[:, :dx] += GX[t + 1, lo:hi]
-            for s in range(substeps - 1, -1, -1):
-                gz = substep_vjp_range(h, theta, dims, states[t * substeps + s, lo:hi], gz, U[t], graph, tgraph,
-                                       lo, hi, lo, A, AT, sums, work, gtheta, GU[t])
+            for s in range(nsub[t] - 1, -1, -1):
+                k -= 1
+                gz = substep_vjp_range(hstep[t], theta, dims, states[k, lo:hi], gz, U[t], graph, tgraph, lo, hi, lo, A,
+                                       AT, sums, work, gtheta, GU[t])
         gx0[lo:hi] = gz[:, :dx] + GX[0, lo:hi]
 
 
@@ -322,7 +337,7 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
 # Stagewise drivers: one large graph, every phase a parallel loop over tiles.
 # ---------------------------------------------------------------------------
 @njit(parallel=True, **JIT)
-def rollout_stagewise(theta, dims, z0, U, graph, substeps, h, out, states, zend):
+def rollout_stagewise(theta, dims, z0, U, graph, nsub, hstep, out, states, zend):
     """Forward rollout of one large graph (arguments as rollout_blocks).  Work arrays are per
     tile; only what nodes send is kept for the whole graph (L2S: h0, s; MP-NODE: a compact
     copy of the stage input's message columns, ping-pong, which the neighbour gather reads:
@@ -345,8 +360,10 @@ def rollout_stagewise(theta, dims, z0, U, graph, substeps, h, out, states, zend)
     out[0] = z0[:, :dx]
     if keep:
         states[0] = z
+    j = 0
     for t in range(T):
-        for s in range(substeps):
+        h = hstep[t]
+        for s in range(nsub[t]):
             for stage in range(4):
                 zin, zout = stage_arrays(stage, z, za, zb)
                 if kind == L2S:
@@ -371,8 +388,9 @@ def rollout_stagewise(theta, dims, z0, U, graph, substeps, h, out, states, zend)
                             for d in range(dm):
                                 mnext[i, d] = nxt[i, dx + d]
                 msg, mnext = mnext, msg
+            j += 1
             if keep:
-                states[t * substeps + s + 1] = z
+                states[j] = z
         out[t + 1] = z[:, :dx]
     zend[:] = z
 
@@ -406,7 +424,7 @@ def _add_rows(acc, G):
 
 
 @njit(parallel=True, **JIT)
-def vjp_stagewise(theta, dims, U, graph, tgraph, substeps, h, states, GX, gthetas, gx0, GU):
+def vjp_stagewise(theta, dims, U, graph, tgraph, nsub, hstep, states, GX, gthetas, gx0, GU):
     """As vjp_blocks for one large graph; gthetas (ntiles, P) holds one partial sum per tile."""
     T1, M, dx = GX.shape
     T = T1 - 1
@@ -422,10 +440,13 @@ def vjp_stagewise(theta, dims, U, graph, tgraph, substeps, h, states, GX, gtheta
     gthetas[:] = 0
     gz = np.zeros_like(z)
     gnew, gbuf0, gbuf1 = np.empty_like(z), np.empty_like(z), np.empty_like(z)
+    j = states.shape[0] - 1
     for t in range(T - 1, -1, -1):
         _add_rows(gz[:, :dx], GX[t + 1])
-        for s in range(substeps - 1, -1, -1):
-            z[:] = states[t * substeps + s]
+        h = hstep[t]
+        for s in range(nsub[t] - 1, -1, -1):
+            j -= 1
+            z[:] = states[j]
             substep_tiles(h, theta, dims, z, za, zb, acc, U[t], graph, C)
             gnew[:] = gz
             gnext, gin = gbuf0, gbuf1

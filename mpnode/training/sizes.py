@@ -1,0 +1,55 @@
+"""The memory a training run will need, checked before the model is made (mpnode.base.memory).
+
+Three kinds of arrays grow with what a user asks for: those the size of the parameters
+(the weights, their gradient, Adam's two moments, the best weights and moments, the
+checkpoint's copies and the kernels' per-block gradients: about PARAM_COPIES float64
+copies), those the size of the training data (the normalised training and validation
+copies, the noise drawn once, the curriculum's windows) and those the size of one batch
+(one state per RK4 step for the adjoint, the rollout and its cotangent).  The largest of
+the three names the option to change.
+"""
+import numpy as np
+
+from mpnode.base.memory import check_memory
+from mpnode.engine import layouts
+
+#: float64 copies of the parameter vector a run keeps (see the module docstring)
+PARAM_COPIES = 16
+#: bytes per data entry beyond the data as read: normalised copy, noise (float64), windows or validation chunks
+DATA_BYTES_PER_ENTRY = 24
+#: arrays of one batch's rollout kept at once (states for the adjoint, outputs, cotangents, stage values)
+BATCH_COPIES = 6
+
+
+def training_bytes(spec, data, config, dtype):
+    """{"parameters", "data", "batch"}: bytes of each kind of array (module docstring).
+
+    spec : the model's FieldSpec;  data : a TrainingData;  config : its TrainConfig;
+    dtype : the model's weights' dtype.
+    """
+    itemsize = np.dtype(dtype).itemsize
+    entries = sum(np.asarray(t.x).size for t in data.datasets)
+    horizon = max(t.horizon for t in data.datasets)
+    nodes = max(t.n_nodes for t in data.datasets)
+    width = spec.state_dim + spec.message_dim
+    batch = (horizon * spec.substeps + 1) * config.batch_size * nodes * width * itemsize * BATCH_COPIES
+    return {"parameters": layouts.n_params(spec) * 8 * PARAM_COPIES, "data": entries * DATA_BYTES_PER_ENTRY,
+            "batch": batch}
+
+
+#: what to change when each kind of array is the largest
+FIXES = {"parameters": ("--hidden", "a smaller --hidden (the parameters grow with its square)"),
+         "data": ("DATA", "fewer or shorter trajectories"),
+         "batch": ("--batch-size", "a smaller --batch-size (or fewer --substeps)")}
+
+
+def check_training_memory(spec, data, config, dtype):
+    """InputError naming the option to change when the run would need more memory than the
+    machine has available."""
+    need = training_bytes(spec, data, config, dtype)
+    largest = max(need, key=need.get)
+    flag, fix = FIXES[largest]
+    value = {"--hidden": spec.hidden, "--batch-size": config.batch_size}.get(flag, ", ".join(data.sources))
+    what = (f"training a model of kind {spec.kind} with {layouts.n_params(spec):,} parameters (hidden {spec.hidden}) and "
+            f"batches of {config.batch_size}")
+    check_memory(sum(need.values()), flag, value, what, fix)
