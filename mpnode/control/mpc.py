@@ -13,6 +13,8 @@ import time
 import numpy as np
 
 from mpnode import engine
+from mpnode.base.arguments import check_int
+from mpnode.base.errors import InputError
 from mpnode.model.model import batch_graph, to_time_major
 
 
@@ -85,11 +87,13 @@ class ShootingMPC:
 
     def __init__(self, model, graph, horizon, bounds=None, iterations=30, messages="carry"):
         if not model.spec.control_dim:
-            raise ValueError("the model has no controls to optimise")
+            raise InputError("ShootingMPC", "model", "has no controls to optimise (du = 0)", "a model with controls")
         if messages not in ("carry", "zero"):
-            raise ValueError(f"messages must be 'carry' or 'zero', not {messages!r}")
+            raise InputError("ShootingMPC", "messages", f"is {messages!r}", "'carry' or 'zero'")
+        horizon = check_int(horizon, "ShootingMPC", "horizon", 1)
+        iterations = check_int(iterations, "ShootingMPC", "iterations", 1)
         self.model = model.copy(np.float64)
-        self.graph, self.horizon, self.bounds, self.iterations = graph, int(horizon), bounds, int(iterations)
+        self.graph, self.horizon, self.bounds, self.iterations = graph, horizon, bounds, iterations
         self.messages = messages
         self.info = None  # the last optimisation's cost, iterations, evaluations, seconds
 
