@@ -1,7 +1,8 @@
 """The MPC study's figures from its results files (needs the plot extra):
 
 - quadrotor_mpc.png: one path's load under each controller against its reference, seen from
-  above (x-y) and from the side (x-z), and the load's tracking error over time;
+  above (x-y) and from the side (x-z), and the load's tracking error over time (a controller
+  that lost the swarm ends in a cross);
 - pendulum_mpc.png: one run's angles under each controller, with the target.
 
     python benchmarks/studies/mpc/figures.py [--dir DIR] [--path 0] [--run 0]
@@ -28,7 +29,10 @@ def quadrotor(results, path, out):
         ax.plot(ref[:, i], ref[:, j], "k--", lw=1.5, label="reference")
         for n in names:
             load = np.array(row[n]["load"])
-            ax.plot(load[:, i], load[:, j], color=COLOURS[n], label=LABELS[n])
+            lost = " (lost: x)" if row[n]["failure"] else ""
+            ax.plot(load[:, i], load[:, j], color=COLOURS[n], label=LABELS[n] + lost)
+            if lost:  # where the swarm was lost (a quadrotor tilted beyond the scene's limit)
+                ax.plot(load[-1, i], load[-1, j], "x", color=COLOURS[n], ms=10, mew=2)
         ax.plot(*row["door"][:1], row["door"][j], "ks", ms=8, label="doorway")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)" if j == 1 else "z (m)")
