@@ -133,7 +133,7 @@ def main():
     a = ap.parse_args()
     model = Model.load(a.model)
     low, high = np.array([-np.pi / 4, -0.5]), np.array([np.pi / 4, 0.5])
-    results = {"model": a.model, "horizon": a.horizon, "iterations": a.iterations, "messages": a.messages,
+    results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations, "messages": a.messages,
                "runs": []}
     for r in range(a.runs):
         rng = np.random.default_rng(np.random.SeedSequence(a.first_seed + r))

@@ -175,7 +175,7 @@ def main():
     makers = {"scene": scene_controller,
               "true": lambda ref, p: true_mpc(ref, p, a.horizon, a.iterations),
               "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages)}
-    results = {"model": a.model, "horizon": a.horizon, "iterations": a.iterations, "messages": a.messages,
+    results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations, "messages": a.messages,
                "paths": []}
     for p in range(a.paths):
         path = new_path(a.first_seed + p)
