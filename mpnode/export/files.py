@@ -43,7 +43,8 @@ def export_file(model_path, output, graph_path=None, nodes=None, steps=None, cla
         from .numpy_module import write_numpy_module
 
         write_numpy_module(model, graph, output)
-        return f"wrote {output}: NumPy module, rollout(x0, steps, u=None) of the {model.kind} model on {graph.n_nodes} nodes"
+        return (f"wrote {output}: NumPy module, rollout(x0, steps, u=None) of the {model.kind} model on "
+                f"{graph.n_nodes} nodes")
     from .onnx_model import write_onnx
 
     steps = 1 if steps is None else steps

@@ -99,7 +99,8 @@ def _field(g, p, z, u):
     if "W_agg" in p:
         w = np.zeros((p["message_dim"], dx + p["message_dim"]))
         w[:, :p["W_agg"].shape[1]] = p["W_agg"]
-        linear = heard if "linear_weight" not in p else g.op("MatMul", g.const(dense_aggregation(p, p["linear_weight"])), m)
+        linear = heard if "linear_weight" not in p else g.op(
+            "MatMul", g.const(dense_aggregation(p, p["linear_weight"])), m)
         k = g.op("Add", k, g.op("MatMul", linear, g.const(w)))
     if p["zero_messages"]:
         k = g.op("Mul", k, g.const(np.r_[np.ones(dx), np.zeros(p["message_dim"])]))

@@ -133,8 +133,8 @@ def main():
     a = ap.parse_args()
     model = Model.load(a.model)
     low, high = np.array([-np.pi / 4, -0.5]), np.array([np.pi / 4, 0.5])
-    results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations, "messages": a.messages,
-               "runs": []}
+    results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations,
+               "messages": a.messages, "runs": []}
     for r in range(a.runs):
         rng = np.random.default_rng(np.random.SeedSequence(a.first_seed + r))
         y0, target = rng.uniform(low, high, size=(2, 2)).ravel(), rng.uniform(-0.15, 0.15, size=2)

@@ -175,8 +175,8 @@ def main():
     makers = {"scene": scene_controller,
               "true": lambda ref, p: true_mpc(ref, p, a.horizon, a.iterations),
               "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages)}
-    results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations, "messages": a.messages,
-               "paths": []}
+    results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations,
+               "messages": a.messages, "paths": []}
     for p in range(a.paths):
         path = new_path(a.first_seed + p)
         row = {"seed": a.first_seed + p, "start": path[0].tolist(), "goal": path[1].tolist(), "door": path[2].tolist()}
