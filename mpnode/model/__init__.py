@@ -3,7 +3,7 @@
 `Simulator`, which steps it one dt at a time.
 
 Owns: `model`, `file`, `renormalise`, `simulator`, `provenance` (the data a model was trained on against
-the data it meets).  May import: mpnode.engine, mpnode.base.
+the data it meets), `ranges` (what a model saw in training, and the inputs that leave it).  May import: mpnode.engine, mpnode.base.
 """
 from .model import Model, batch_graph, check_data  # noqa: F401
 from .simulator import Simulator  # noqa: F401

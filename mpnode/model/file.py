@@ -21,6 +21,9 @@ LINEAR_PATH_VERSION = 3
 #: written only for a model with an initial-state encoder (with or without the linear path)
 ENCODER_VERSION = 4
 VERSIONS = (1, FORMAT_VERSION, LINEAR_PATH_VERSION, ENCODER_VERSION)
+#: the optional group of what the model saw in training (mpnode.model.ranges), and its key in attrs;
+#: any version may hold it, and a reader that does not know it ignores it
+SEEN, SEEN_ATTR = "seen", "seen_ranges"
 
 
 def version_of(spec):
@@ -154,6 +157,8 @@ def read_model(path):
                 if key in norm and np.any(norm[key] <= 0):
                     raise InputError(path, f"norm/{key}", "has a value <= 0", "standard deviations > 0")
             extra = {k: v for k, v in attrs.a.items() if k not in _SPEC_ATTRS}
+            if SEEN in f:
+                extra[SEEN_ATTR] = _seen(f, path)
     except InputError:
         raise
     except H5_DAMAGE as e:  # damaged bytes that h5py only notices while reading
@@ -177,6 +182,18 @@ def _dataset(f, path, name, shape):
     return arr
 
 
+def _seen(f, path):
+    """The training ranges of the optional group ``seen/``: {quantity_min, quantity_max: list}."""
+    out = {}
+    for name in f[SEEN]:
+        d = f[f"{SEEN}/{name}"]
+        if not hasattr(d, "dtype") or d.dtype.kind != "f" or d.ndim != 1:
+            raise InputError(path, f"{SEEN}/{name}", f"is {getattr(d, 'dtype', 'a group')}",
+                             "a 1-D float dataset (the range seen in training), or no seen/ group")
+        out[name] = d[()].astype(np.float64).tolist()
+    return out
+
+
 def spec_attrs(spec):
     """The root attributes that describe ``spec`` (format version 2, or 3 with the linear path)."""
     version = version_of(spec)
@@ -190,8 +207,10 @@ def write_model(path, spec, params, norm, attrs):
 
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         for k, v in attrs.items():
-            if k not in _SPEC_ATTRS and v is not None:
+            if k not in _SPEC_ATTRS and k != SEEN_ATTR and v is not None:
                 f.attrs[k] = v
+        for name, values in (attrs.get(SEEN_ATTR) or {}).items():
+            f[f"{SEEN}/{name}"] = np.asarray(values, dtype=np.float64)
         f.attrs.update(spec_attrs(spec))
         for name, arr in params.items():
             f[f"params/{name}"] = arr

@@ -15,6 +15,7 @@ from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph, as_graph, is_networkx
 
 from .model import Model, batch_graph, node_intervals, to_time_major
+from .ranges import Watch
 
 
 class Simulator:
@@ -28,6 +29,10 @@ class Simulator:
     >>> x = sim.reset(x0)                  # (B, N, dx)
     >>> for t in range(T):
     ...     x = sim.step(controller(x))    # u (B, N, du), or step() without controls
+
+    An input that leaves the range the model saw in training (a state, the in-degree, an
+    aggregate, the number of nodes) is warned of once (mpnode.model.ranges.OffRangeWarning)
+    and listed in ``sim.off_range``.
     """
 
     def __init__(self, model, graph, backend="auto"):
@@ -60,6 +65,8 @@ class Simulator:
         self._flat = batch_graph(self.graph, x0.shape[0])  # the batch graph rollout uses: same plan
         self._z = engine.initial_state(spec, m.normalize_x(x0).reshape(-1, spec.state_dim), m.dtype)
         self.steps = 0
+        self._watch = Watch(m, self.graph, x0.shape[0])
+        self._watch(self._z, None, 0)
         return self.state
 
     def warm_up(self, observations, times=None, u=None):
@@ -77,6 +84,7 @@ class Simulator:
             un = None if u is None else to_time_major(m.normalize_u(np.asarray(u)))
             _, self._z = engine.integrate(spec, m.theta, self._z, self._flat, un, k - 1, backend=self.backend,
                                           intervals=iv)
+            self._watch(self._z, None if un is None else un[-1], 0)
         return self.state
 
     def step(self, u=None):
@@ -89,6 +97,7 @@ class Simulator:
         u = None if u is None else u[None]
         _, self._z = engine.integrate(spec, m.theta, self._z, self._flat, u, 1, backend=self.backend)
         self.steps += 1
+        self._watch(self._z, None if u is None else u[0], self.steps)
         return self.state
 
     def jacobians(self, u=None, sparse=False):
@@ -114,6 +123,14 @@ class Simulator:
         if sparse:
             return ([_scaled(j, sx, 1 / sx, m.dtype) for j in jx], [_scaled(j, sx, 1 / su, m.dtype) for j in ju])
         return (jx * (sx[:, None] * (1 / sx))).astype(m.dtype), (ju * (sx[:, None] * (1 / su))).astype(m.dtype)
+
+    @property
+    def off_range(self):
+        """The inputs that have left what the model saw in training since ``reset`` (each quantity
+        once, where it first did: dicts as `mpnode.eval --json`'s ``off_range``); each was also
+        warned of (mpnode.model.ranges.OffRangeWarning).  [] for a model without recorded ranges."""
+        self._require_reset()
+        return list(self._watch.entries.values())
 
     @property
     def state(self):
