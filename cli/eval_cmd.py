@@ -138,6 +138,8 @@ def format_report(report, model_name):
                 parts.append(f"nmse > {thr} at step {h['median_step']}{when}")
         lines.append("  predictable horizon (median over trajectories of the first step whose error exceeds): "
                      + "; ".join(parts))
+    if r.get("coverage_90") is not None:
+        lines += format_spread(r)
     if "substeps" in r:
         lines += format_substeps(r["substeps"], r.get("substeps_auto"), r.get("stability"))
     lines.append(f"  learned rollout: {r['rollout_seconds']:.3g} s for {r['trajectories']} trajectories "
@@ -148,6 +150,22 @@ def format_report(report, model_name):
     elif "reference" in r:
         lines.append("  reference: the file names no system data_gen can rebuild; not timed")
     return "\n".join(lines)
+
+
+def format_spread(r):
+    """An ensemble's lines: how often the truth lies inside its bands, the error it expects, and
+    whether its spread ranks the trajectories' errors."""
+    names = r.get("state_names") or [f"x[{k}]" for k in range(len(r["spread_per_dim"]))]
+    return [f"  ensemble: the truth inside the central 50% band {_pct(r['coverage_50'])} of the time, inside the "
+            f"90% band {_pct(r['coverage_90'])} (steps 1..{r['horizon']}, all nodes and dimensions)",
+            f"  spread (calibrated std, mean over trajectories, steps and nodes): "
+            + ", ".join(f"{n}: {_g(v)}" for n, v in zip(names, r["spread_per_dim"]))
+            + f"; as a normalised MSE {_g(r['spread_nmse'])} (the error it expects; measured: {_g(r['nmse'])})",
+            f"  spread against error across trajectories: Spearman {_g(r['spread_error_spearman'])}"]
+
+
+def _pct(v):
+    return v if isinstance(v, str) else f"{100 * v:.1f}%"
 
 
 def format_reference(ref):
@@ -259,8 +277,10 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
         attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report),
                  **{k: traj.attrs[k] for k in ("state_names",) if k in traj.attrs}}
         pred = result.predictions[..., :traj.state_dim]  # a model's latent dimensions stay its own
+        spread = None if result.spread is None else result.spread[..., :traj.state_dim]
         pf = _or_why(lambda: predictions_file(pred, traj.graphs, traj.graph_index, traj.dt, traj.system,
-                                              os.path.abspath(model_file), traj.u, attrs, traj.t), result.stability)
+                                              os.path.abspath(model_file), traj.u, attrs, traj.t, spread),
+                     result.stability)
         write_trajectories(predictions, pf)
         if not as_json:
             click.echo(f"wrote {predictions}")
@@ -351,7 +371,7 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
              **s.graph.describe(), **substeps_attrs(sim.substeps, sim.substeps_report),
              **({"state_names": list(system.state_names)} if system.state_names else {})}
     pf = _or_why(lambda: predictions_file(sim.predictions, graphs, gi, model.spec.dt, s.system,
-                                          os.path.abspath(model_file), attrs=attrs), sim.stability)
+                                          os.path.abspath(model_file), attrs=attrs, spread=sim.spread), sim.stability)
     write_trajectories(output, pf)
     node_steps = s.trajectories * s.graph.n_nodes * s.horizon
     click.echo(f"wrote {output}: {s.name}, B={s.trajectories}, T={s.horizon}, N={s.graph.n_nodes}, "

@@ -14,7 +14,7 @@ from mpnode.training import TrainConfig
 from mpnode.training.recipes import AUTO_ALL, FINETUNE_AUTO
 
 from .eval_cmd import check_plot, plot_option
-from .main import claim_outputs, main
+from .main import claim_outputs, main, scheduler_option
 
 #: `mpnode train SCENE` (a scene instead of files): trajectories generated and the default time budget
 SCENE_TRAJECTORIES = 300
@@ -97,6 +97,15 @@ def training_options(f):
         click.option("--curriculum-epochs", type=click.IntRange(min=1), default=d.curriculum_epochs,
                      show_default=True, help="Epochs per window length of --curriculum (the full horizon "
                      "gets the rest)."),
+        click.option("--ensemble", type=click.IntRange(min=1), default=d.ensemble, show_default=True, metavar="K",
+                     help="Train K models (members: seeds SEED, SEED+1, ...; one validation split) into one file, "
+                          "in parallel (a process each on this machine, or on Dask with --scheduler).  Their "
+                          "spread says how far to trust a prediction: `mpnode eval` reports it, calibrated on "
+                          "the validation trajectories, and how often the truth falls inside its bands.  "
+                          "--time-limit is the whole ensemble's budget."),
+        click.option("--bootstrap/--no-bootstrap", default=None,
+                     help="With --ensemble: each member trains on a resample (with replacement) of the training "
+                          "trajectories.  Default: the recipe's."),
         click.option("--resume", is_flag=True,
                      help="Continue the run whose checkpoint (OUTPUT.state) is beside -o; its settings are kept "
                           "except --epochs and --time-limit."),
@@ -136,7 +145,7 @@ def _parse_curriculum(ctx, param, value):
     return tuple(windows)
 
 
-def given_options(o, skip=("output", "resume", "trajectories", "recipe", "plot")):
+def given_options(o, skip=("output", "resume", "trajectories", "recipe", "plot", "scheduler")):
     """The library's options (runs.split_options' names) the user set: flags left at their
     defaults are not passed, so the recipe and the library's defaults fill them."""
     from click.core import ParameterSource
@@ -285,6 +294,7 @@ def print_validation(result):
 @click.option("--trajectories", type=click.IntRange(min=2), default=SCENE_TRAJECTORIES, show_default=True,
               help="Only when DATA is a scene: trajectories to generate.")
 @training_options
+@scheduler_option
 def train_cmd(data, trajectories, recipe, **o):
     """Learn a model from trajectory files DATA... (same dx, du and dt; graphs and N may differ).
 
@@ -328,11 +338,45 @@ def train_cmd(data, trajectories, recipe, **o):
         options["time_limit"] = runs.parse_duration(SCENE_TIME_LIMIT)
     datasets = runs.read_all(data)
     resume = o["resume"]
-    result = run_with_progress(o["epochs"], options.get("time_limit"), output, lambda **kw: runs.train(
-        data, output, options, recipe_name=recipe, resume=resume, datasets=datasets, **kw), plot)
-    print_validation(result)
+    if o["ensemble"] > 1:
+        model = train_ensemble(o, data, output, options, recipe, datasets)
+    else:
+        result = run_with_progress(o["epochs"], options.get("time_limit"), output, lambda **kw: runs.train(
+            data, output, options, recipe_name=recipe, resume=resume, datasets=datasets, **kw), plot)
+        print_validation(result)
+        model = result.model
     if scene is not None:
-        _evaluate_on_fresh(scene, result.model, output, o["seed"] + 1)
+        _evaluate_on_fresh(scene, model, output, o["seed"] + 1)
+
+
+def check_ensemble(o):
+    """--ensemble K > 1 trains K runs into one file: no log or checkpoint of its own to plot or resume."""
+    for flag in ("resume", "plot"):
+        if o[flag]:
+            raise InputError(f"--{flag}", flag, "is given with --ensemble",
+                             "an ensemble without it (its members train afresh and leave no log or checkpoint)")
+
+
+def train_ensemble(o, data, output, options, recipe, datasets, parent=None, refit_norm=False):
+    """`--ensemble K`: the members on the pool or --scheduler, then their figures; returns the Ensemble."""
+    from mpnode.runs.ensemble import train_ensemble as train
+
+    check_ensemble(o)
+
+    def notify(msg):
+        click.echo(msg, err=True)
+
+    ensemble, results = train(data, output, options, recipe_name=recipe, scheduler=o["scheduler"], notify=notify,
+                              datasets=datasets, parent=parent, refit_norm=refit_norm)
+    for i, r in enumerate(results):
+        click.echo(f"member {i} (seed {ensemble.member_info['member_seed'][i]}): {r['status']}, best validation "
+                   f"normalised MSE {_fmt(r['val_nmse'])} at epoch {r['best_epoch']} of {r['epoch']}; "
+                   f"{r['seconds']:.1f} s")
+    if any(r["status"] == "diverged" for r in results):
+        raise NumericalError("a member diverged (its best finite model is kept in the ensemble)")
+    click.echo(f"wrote {output} (ensemble of {ensemble.size}; spread scale "
+               + ", ".join(f"{v:.3g}" for v in ensemble.spread_scale) + ")")
+    return ensemble
 
 
 def _scene_of(data):
@@ -382,6 +426,7 @@ def _evaluate_on_fresh(scene, model, output, seed):
                    "state dimension by the new data's spread (as `mpnode eval` does).")
 @recipe_option("the paper's training settings: plateau schedule, batch 128")
 @training_options
+@scheduler_option
 def finetune_cmd(model_file, data, refit_norm, recipe, **o):
     """Continue training MODEL on DATA... and write the result to OUTPUT.
 
@@ -398,6 +443,13 @@ def finetune_cmd(model_file, data, refit_norm, recipe, **o):
     claim_outputs({"--output": output})
     datasets = runs.read_all(data)
     resume, options = o["resume"], given_options(o)
+    from mpnode.runs.ensemble import ensemble_size
+
+    if o["ensemble"] == 1 and not resume:  # an ensemble's members each continue by default
+        o["ensemble"] = options["ensemble"] = ensemble_size(model_file)
+    if o["ensemble"] > 1:
+        train_ensemble(o, data, output, options, recipe, datasets, parent=model_file, refit_norm=refit_norm)
+        return
     result = run_with_progress(o["epochs"], o["time_limit"], output, lambda **kw: runs.finetune(
         model_file, data, output, options, refit_norm=refit_norm, recipe_name=recipe, resume=resume,
         datasets=datasets, **kw), o["plot"])

@@ -28,6 +28,7 @@ from .metrics import (
     nmse_per_step,
     predictable_horizon,
 )
+from .spread import spread_figures
 
 
 @dataclass
@@ -45,6 +46,10 @@ class EvalResult:
     warmup : the observations each rollout's start was estimated from (scored from step max(1, warmup))
     nmse_per_dim : the normalised MSE of each state dimension (NaN: not scored)
     hidden_dims : the dimensions the model never saw measured in training: not scored
+    scored : (B, T+1, N, dx) what the predictions were scored against (NaN: not scored)
+    member_std, spread : of an ensemble (predictions are its mean): the members' standard
+        deviation and the calibrated spread (data units, the shape of predictions); else None
+    ensemble : of an ensemble, mpnode.evaluation.spread.spread_figures (coverage, spread); else None
     """
 
     nmse_per_step: np.ndarray
@@ -65,6 +70,10 @@ class EvalResult:
     warmup: int = 0
     nmse_per_dim: list = None
     hidden_dims: list = None
+    scored: np.ndarray = None
+    member_std: np.ndarray = None
+    spread: np.ndarray = None
+    ensemble: dict = None
 
     def summary(self):
         """A JSON-ready dict (no predictions; inf/NaN as strings)."""
@@ -80,19 +89,22 @@ class EvalResult:
                 "step_too_large": bool(self.stability and self.stability["step_too_large"]),
                 "suggested_substeps": self.stability and self.stability["suggested_substeps"],
                 "stability": self.stability, "predictable_horizon": self.horizons, "warmup": self.warmup,
-                "nmse_per_dim": [num(float(v)) for v in self.nmse_per_dim or []], "hidden_dims": self.hidden_dims or []}
+                "nmse_per_dim": [num(float(v)) for v in self.nmse_per_dim or []], "hidden_dims": self.hidden_dims or [],
+                "coverage_50": None, "coverage_90": None, **(self.ensemble or {})}
 
 
 @dataclass
 class SimulationResult:
     """predictions : ndarray, shape (B, T+1, N, dx), data units;  seconds : rollout wall time;
-    substeps, substeps_report, stability : as in EvalResult."""
+    substeps, substeps_report, stability : as in EvalResult;  spread : an ensemble's calibrated
+    spread (the shape of predictions, data units), else None."""
 
     predictions: np.ndarray
     seconds: float
     substeps: int
     substeps_report: dict
     stability: dict
+    spread: np.ndarray = None
 
 
 def rollout_all(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384, times=None):
@@ -163,7 +175,7 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     x0 = start_states(model, traj, warmup, start)
     model, auto_report = with_substeps(model, substeps, x0, traj.graphs, traj.graph_index, u, t1 - 1,
                                        substeps_tol, max_substeps)
-    seconds, pred = _timed_rollout(model, x0, traj, u, times, max_nodes)
+    seconds, pred, member_std = _timed_rollout(model, x0, traj, u, times, max_nodes)
     clean = _truth_of(traj, truth, source)
     score = _scored(clean, traj, max(warmup, 1), truth is None and traj.truth is None)
     hidden = [int(k) for k in np.atleast_1d(model.attrs.get("unmeasured_dims", [])) if 0 <= int(k) < dx]
@@ -177,11 +189,13 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
         stability = stepsize.stability_check(model, x0, _per_trajectory(traj.graphs, traj.graph_index), u,
                                              pred, bad, substeps_tol, max_substeps=max_substeps, box=box)
     first = max(warmup, 1)
+    spread = None if member_std is None else member_std * model.spread_scale
+    figures = None if spread is None else spread_figures(pred, spread, score, clean)
     return EvalResult(err, float(np.nanmean(err[first:])), _last(err), int(np.argmax(blown)) if blown.any() else None,
                       int(bad[:, -1].sum()), seconds, b * n * (t1 - 1) / max(seconds, 1e-12), pred, b, t1 - 1, n,
                       model.spec.substeps, auto_report, stability,
                       predictable_horizon(pred, score, traj.dt, horizon_thresholds, bad), warmup,
-                      nmse_per_dimension(pred, score, clean).tolist(), hidden)
+                      nmse_per_dimension(pred, score, clean).tolist(), hidden, score, member_std, spread, figures)
 
 
 def start_states(model, traj, warmup, start="encoder"):
@@ -190,6 +204,9 @@ def start_states(model, traj, warmup, start="encoder"):
     to them through the engine when ``start`` is "fit" (mpnode.model.start)."""
     if start not in STARTS:
         raise InputError("--start", "start", f"is {start!r}", " or ".join(STARTS))
+    if start == "fit" and hasattr(model, "members"):
+        raise InputError("--start", "start", "is fit for an ensemble", "--start encoder (each member's start is "
+                         "the members' mean estimate)")
     k = max(int(warmup), 1)
     times = None if traj.regular else traj.times()[:, :k]
     obs = np.asarray(traj.x)[:, :k]
@@ -206,12 +223,25 @@ STARTS = ("encoder", "fit")
 
 
 def _timed_rollout(model, x0, traj, u, times, max_nodes):
-    """(seconds, predictions): every trajectory rolled out, the compiled kernels loaded first."""
-    rollout_all(model, x0[:1], traj.graphs, traj.graph_index[:1], 1, None if u is None else u[:1, :1],
+    """(seconds, predictions, the members' std or None): every trajectory rolled out (an
+    ensemble's members each: the predictions are their mean), the compiled kernels loaded first."""
+    first = getattr(model, "members", [model])[0]
+    rollout_all(first, x0[:1], traj.graphs, traj.graph_index[:1], 1, None if u is None else u[:1, :1],
                 times=None if times is None else times[:1, :2])
     start = time.perf_counter()
-    pred = rollout_all(model, x0, traj.graphs, traj.graph_index, traj.horizon, u, max_nodes, times)
-    return time.perf_counter() - start, pred
+    pred, member_std = rollout_spread(model, x0, traj.graphs, traj.graph_index, traj.horizon, u, max_nodes, times)
+    return time.perf_counter() - start, pred, member_std
+
+
+def rollout_spread(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384, times=None):
+    """(predictions, None) of a Model (`rollout_all`); of an ensemble (its members each rolled
+    out), (the members' mean, their standard deviation (ddof 1, float64))."""
+    members = getattr(model, "members", None)
+    if members is None:
+        return rollout_all(model, x0, graphs, graph_index, steps, u, max_nodes, times), None
+    stacked = np.stack([rollout_all(m, x0, graphs, graph_index, steps, u, max_nodes, times) for m in members])
+    with np.errstate(all="ignore"):
+        return stacked.mean(axis=0), np.std(stacked.astype(np.float64), axis=0, ddof=1)
 
 
 def _truth_of(traj, truth, source):
@@ -267,13 +297,14 @@ def simulate(model, x0, graphs, graph_index, horizon, u=None, substeps=None, sub
     model, auto_report = with_substeps(model, substeps, x0, graphs, graph_index, u, horizon, substeps_tol,
                                        max_substeps)
     start = time.perf_counter()
-    pred = rollout_all(model, x0, graphs, graph_index, horizon, u)
+    pred, member_std = rollout_spread(model, x0, graphs, graph_index, horizon, u)
     seconds = time.perf_counter() - start
     box = simulation_box(model, x0)
     stability = stepsize.stability_check(model, x0, _per_trajectory(graphs, graph_index), u, pred,
                                          blow_up_mask(pred, box=box), substeps_tol, max_substeps=max_substeps,
                                          box=box)
-    return SimulationResult(pred, seconds, model.spec.substeps, auto_report, stability)
+    spread = None if member_std is None else member_std * model.spread_scale
+    return SimulationResult(pred, seconds, model.spec.substeps, auto_report, stability, spread)
 
 
 def learned_seconds_per_trajectory(model, traj, k, repeats=3):
@@ -289,9 +320,10 @@ def learned_seconds_per_trajectory(model, traj, k, repeats=3):
     return best / k
 
 
-def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, attrs=None, t=None):
+def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, attrs=None, t=None, spread=None):
     """Trajectories holding ``pred`` (B, T+1, N, dx) on ``graphs`` (and controls ``u``), at the
-    observation times ``t`` (B, T+1) when the data had their own.
+    observation times ``t`` (B, T+1) when the data had their own; an ensemble's calibrated
+    ``spread`` (like pred) as ``x_std``.
 
     attrs say they are predictions (``predicted_by`` = model_name); raises NumericalError
     when a prediction is non-finite (the trajectory format forbids it).
@@ -302,7 +334,8 @@ def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, 
                              "predictions not written (the trajectory format forbids NaN/inf)")
     attrs = {"predicted_by": str(model_name), "prediction": 1, **(attrs or {})}
     return Trajectories(x=pred, graphs=list(graphs), dt=dt, system=system, u=u,
-                        graph_index=np.asarray(graph_index) if len(graphs) > 1 else None, attrs=attrs, t=t)
+                        graph_index=np.asarray(graph_index) if len(graphs) > 1 else None, attrs=attrs, t=t,
+                        x_std=None if spread is None else np.asarray(spread, dtype=np.asarray(pred).dtype))
 
 
 def substeps_attrs(substeps, auto_report):

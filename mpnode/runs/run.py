@@ -160,6 +160,9 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
     if resume:
         check_resume_options(state_path(output), options)
     model = None if resume else Model.load(model_path)
+    if hasattr(model, "members"):
+        raise InputError(model_path, "ensemble_size", f"is an ensemble of {model.size} models",
+                         "mpnode.runs.ensemble.train_ensemble (the command line: finetune --ensemble K)")
     if model is not None:
         datasets = [model.fitted(t) for t in datasets]
     if not resume:

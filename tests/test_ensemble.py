@@ -1,0 +1,112 @@
+"""Ensembles: one file of K members (format version 5), their mean and calibrated spread, the
+coverage of the spread's bands, and `train --ensemble K` / `eval --json` / `--predictions`."""
+import json
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from cli.main import main
+from mpnode import Model
+from mpnode.base.errors import InputError
+from mpnode.data import read_trajectories
+from mpnode.evaluation import evaluate
+from mpnode.model import Ensemble, file as model_file
+from mpnode.model.ensemble import coverage, fitted_scale
+
+
+def run(*args):
+    return CliRunner().invoke(main, [str(a) for a in args])
+
+
+@pytest.fixture
+def ensemble(fresh):
+    return Ensemble([fresh(seed=s, hidden=8) for s in range(3)], [1.5, 2.0],
+                    attrs={"system": "tiny_linear"}, member_info={"member_seed": np.arange(3)})
+
+
+def test_file_round_trip_is_version_5_and_keeps_members(tmp_path, ensemble, tiny_linear):
+    path = tmp_path / "e.h5"
+    ensemble.save(path)
+    with h5py.File(path, "r") as f:
+        assert f.attrs["format_version"] == model_file.ENSEMBLE_VERSION and f.attrs["ensemble_size"] == 3
+        assert f["params/W1"].shape[0] == 3
+    back = Model.load(path)
+    assert isinstance(back, Ensemble) and back.size == 3
+    np.testing.assert_array_equal(back.spread_scale, [1.5, 2.0])
+    for a, b in zip(back.members, ensemble.members):
+        np.testing.assert_array_equal(a.theta, b.theta)
+    traj = tiny_linear(B=4, T=6)
+    x0, g = traj.x[:, 0], traj.graphs[0]
+    members = np.stack([m.rollout(x0, g, steps=6) for m in ensemble.members]).astype(np.float64)
+    mean, spread = back.predict(x0, g, steps=6)
+    np.testing.assert_allclose(mean, members.mean(axis=0), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(spread, members.std(axis=0, ddof=1) * [1.5, 2.0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(back.rollout(x0, g, steps=6), members.mean(axis=0), rtol=1e-5, atol=1e-6)
+
+
+def test_version_and_ensemble_size_must_agree(tmp_path, ensemble):
+    path = tmp_path / "e.h5"
+    ensemble.save(path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["format_version"] = 2
+    with pytest.raises(InputError, match="format_version.*5 exactly for an ensemble"):
+        Model.load(path)
+    with h5py.File(path, "r+") as f:  # an older reader knows versions 1 to 4 only: 5 is refused
+        f.attrs["format_version"] = 5
+        del f["ensemble/spread_scale"]
+    with pytest.raises(InputError, match="ensemble/spread_scale"):
+        Model.load(path)
+
+
+def test_fitted_scale_makes_the_90_band_cover_90_percent():
+    rng = np.random.default_rng(0)
+    std = rng.uniform(0.5, 2.0, (4000, 2))
+    truth = rng.normal(0.0, 3.0 * std)  # the members underestimate by 3x
+    mean = np.zeros_like(truth)
+    assert coverage(truth, mean, std, 90) < 0.5
+    scale = fitted_scale(truth, mean, std)
+    np.testing.assert_allclose(scale, 3.0, rtol=0.1)
+    assert abs(coverage(truth, mean, std * scale, 90) - 0.9) < 0.01
+    assert abs(coverage(truth, mean, std * scale, 50) - 0.5) < 0.05
+
+
+def test_evaluate_reports_coverage_and_spread(ensemble, tiny_linear):
+    traj = tiny_linear(B=5, T=8)
+    r = evaluate(ensemble, traj, check_stability=False)
+    s = r.summary()
+    assert 0 <= s["coverage_50"] <= s["coverage_90"] <= 1
+    assert np.array(s["spread_per_node"]).shape == (2, 2) and len(s["spread_per_trajectory"]) == 5
+    assert r.spread.shape == r.predictions.shape
+    inside = np.abs(r.scored[:, 1:] - r.predictions[:, 1:]) <= 1.6448536269514722 * r.spread[:, 1:]
+    assert s["coverage_90"] == pytest.approx(inside.mean())
+    single = evaluate(ensemble.members[0], traj, check_stability=False).summary()
+    assert single["coverage_90"] is None
+
+
+def test_eval_json_and_predictions_hold_mean_and_spread(tmp_path, ensemble, tiny_file):
+    model, data, pred = tmp_path / "e.h5", tiny_file(tmp_path / "d.h5", B=4, T=6), tmp_path / "p.h5"
+    ensemble.save(model)
+    res = run("eval", model, data, "--json", "--reference-sample", 0, "--predictions", pred)
+    assert res.exit_code == 0, res.output
+    report = json.loads(res.stdout)  # one JSON object and nothing else
+    assert {"coverage_50", "coverage_90", "spread_per_node"} <= set(report)
+    p = read_trajectories(pred)
+    assert p.x_std is not None and p.x_std.shape == p.x.shape and np.all(p.x_std >= 0)
+    r = evaluate(ensemble, read_trajectories(data), check_stability=False)
+    np.testing.assert_allclose(p.x_std, r.spread, rtol=1e-5, atol=1e-7)
+
+
+def test_train_ensemble_writes_one_calibrated_file(tmp_path, tiny_file):
+    data, out = tiny_file(tmp_path / "d.h5", B=16, T=6), tmp_path / "e.h5"
+    res = run("train", data, "-o", out, "--ensemble", 2, "--epochs", 2, "--hidden", 4, "--message-dim", 1,
+              "--val-split", 0.25)
+    assert res.exit_code == 0, res.output
+    e = Model.load(out)
+    assert isinstance(e, Ensemble) and e.size == 2
+    assert list(e.member_info["member_seed"]) == [0, 1]
+    assert not np.array_equal(e.members[0].theta, e.members[1].theta)
+    assert np.all(e.spread_scale > 0) and not np.all(e.spread_scale == 1)
+    res = run("train", data, "-o", tmp_path / "f.h5", "--ensemble", 2, "--resume")
+    assert res.exit_code == 2 and "--resume" in res.output
