@@ -365,7 +365,7 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
         from mpnode.plot import plot_simulation
 
         plot_simulation(sim.predictions, model.spec.dt, plot, state_names=list(system.state_names) or None,
-                        title=f"{os.path.basename(model_file)} ({model.kind}) on {s.name}")
+                        title=f"{os.path.basename(model_file)} ({model.kind}) on {s.name}", spread=sim.spread)
         click.echo(f"wrote {plot}")
     attrs = {"scene": s.name, "seed": s.seed, "description": f"{model.kind} rollout of {s.description}",
              **s.graph.describe(), **substeps_attrs(sim.substeps, sim.substeps_report),

@@ -110,3 +110,29 @@ def test_train_ensemble_writes_one_calibrated_file(tmp_path, tiny_file):
     assert np.all(e.spread_scale > 0) and not np.all(e.spread_scale == 1)
     res = run("train", data, "-o", tmp_path / "f.h5", "--ensemble", 2, "--resume")
     assert res.exit_code == 2 and "--resume" in res.output
+
+
+def test_simulator_steps_every_member_and_gives_the_spread(ensemble, tiny_linear):
+    from mpnode import Simulator
+
+    traj = tiny_linear(B=3, T=5)
+    x0, g = traj.x[:, 0], traj.graphs[0]
+    mean, spread = ensemble.predict(x0, g, steps=5)
+    sim = Simulator(ensemble, g)
+    sim.reset(x0)
+    for t in range(5):
+        x = sim.step()
+    np.testing.assert_allclose(x, mean[:, -1], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(sim.spread, spread[:, -1], rtol=1e-4, atol=1e-6)
+    assert sim.messages.shape == (3, 3, 2, 3)  # K, B, N, dm
+
+
+def test_inspect_and_plot_of_an_ensemble(tmp_path, ensemble, tiny_file):
+    pytest.importorskip("matplotlib")
+    model, data, fig = tmp_path / "e.h5", tiny_file(tmp_path / "d.h5", B=3, T=5), tmp_path / "f.png"
+    ensemble.save(model)
+    res = run("inspect", model)
+    assert res.exit_code == 0 and "3 members" in res.output, res.output
+    res = run("eval", model, data, "--reference-sample", 0, "--plot", fig)
+    assert res.exit_code == 0 and fig.stat().st_size > 0, res.output
+    assert "90% band" in res.output

@@ -67,7 +67,8 @@ def train_ensemble(paths, output, options, *, recipe_name="auto", scheduler=None
     ensemble = Ensemble(members, member_info={
         "member_seed": np.arange(seed, seed + k), "member_epoch": np.array([r["best_epoch"] for r in results]),
         "member_val_loss": np.array([r["best_val_loss"] for r in results])}, attrs=members[0].attrs)
-    ensemble.attrs.pop("seed", None)
+    for own in ("seed", "epoch", "val_loss"):  # member 0's: each member's are under ensemble/
+        ensemble.attrs.pop(own, None)
     ensemble.spread_scale = calibration(ensemble, datasets, names, {**options, "seed": seed}, notify)
     ensemble.save(output, seed=seed)
     return ensemble, results
