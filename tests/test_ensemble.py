@@ -110,6 +110,13 @@ def test_train_ensemble_writes_one_calibrated_file(tmp_path, tiny_file):
     assert np.all(e.spread_scale > 0) and not np.all(e.spread_scale == 1)
     res = run("train", data, "-o", tmp_path / "f.h5", "--ensemble", 2, "--resume")
     assert res.exit_code == 2 and "--resume" in res.output
+    res = run("finetune", out, data, "-o", tmp_path / "g.h5", "--epochs", 1)  # each member continues its own
+    assert res.exit_code == 0, res.output
+    g = Model.load(tmp_path / "g.h5")
+    assert isinstance(g, Ensemble) and g.size == 2
+    assert not np.array_equal(g.members[0].theta, e.members[0].theta)
+    res = run("finetune", out, data, "-o", tmp_path / "h.h5", "--ensemble", 3)
+    assert res.exit_code == 2 and "ensemble_size" in res.output
 
 
 def test_simulator_steps_every_member_and_gives_the_spread(ensemble, tiny_linear):

@@ -44,14 +44,13 @@ class Ensemble:
         self.member_info = dict(member_info or {})
 
     @classmethod
-    def from_file(cls, held, path="model"):
-        """The ensemble of what `model_file.read_model` returned for an ensemble file."""
-        from .model import Model
-
+    def from_file(cls, held, path, model_class):
+        """The ensemble of what `model_file.read_model` returned for an ensemble file, its members
+        of ``model_class`` (mpnode.model.Model, which reads the files: this module never imports it)."""
         common = {k: held[k] for k in ("spec", "x_mean", "x_std", "u_mean", "u_std")}
         info = {k: v for k, v in held["ensemble"].items() if k != "spread_scale"}
         seeds = info.get("member_seed")
-        members = [Model(theta, attrs={} if seeds is None else {"seed": int(seeds[i])}, **common)
+        members = [model_class(theta, attrs={} if seeds is None else {"seed": int(seeds[i])}, **common)
                    for i, theta in enumerate(held["theta"])]
         try:
             return cls(members, held["ensemble"]["spread_scale"], held["attrs"], info)

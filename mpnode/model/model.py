@@ -21,6 +21,7 @@ from mpnode.engine.schedule import MAX_STEPS_PER_INTERVAL
 
 from . import encoder
 from . import file as model_file
+from .ensemble import Ensemble
 from .config import configured
 
 
@@ -72,9 +73,7 @@ class Model:
         uses as a Model (its rollout is the members' mean) and which adds the spread."""
         held = model_file.read_model(path)
         if "ensemble" in held:
-            from .ensemble import Ensemble
-
-            return Ensemble.from_file(held, path)
+            return Ensemble.from_file(held, path, cls)
         return cls(**held)
 
     def save(self, path, **attrs):
