@@ -105,7 +105,8 @@ def training_options(f):
                           "--time-limit is the whole ensemble's budget."),
         click.option("--bootstrap/--no-bootstrap", default=None,
                      help="With --ensemble: each member trains on a resample (with replacement) of the training "
-                          "trajectories.  Default: the recipe's."),
+                          "trajectories (the validation split stays one): members that saw different data disagree "
+                          "where data are thin.  Default: off (members differ by seed only)."),
         click.option("--resume", is_flag=True,
                      help="Continue the run whose checkpoint (OUTPUT.state) is beside -o; its settings are kept "
                           "except --epochs and --time-limit."),
