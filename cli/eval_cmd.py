@@ -234,6 +234,14 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     report says which setting, what was tried, and whether the model is faster or slower.
     A MODEL trained on another system than DATA's is evaluated, with a warning.
 
+    An ensemble MODEL (train --ensemble K): the error is the members' mean's; the report
+    adds the spread (the members' std times the scale fitted on validation data at
+    training time) per dimension (--json: spread_per_node, N x dx), the fraction of true
+    values inside the central 50% and 90% bands mean +- 0.674 / 1.645 spread over steps
+    1..T, all nodes and dimensions (coverage_50, coverage_90; null for one model), and the
+    Spearman correlation of each trajectory's spread with its error.  --predictions then
+    holds the mean as x and the spread as x_std; --plot shades the 90% band.
+
     Substeps: --substeps auto picks the RK4 substeps per dt by step doubling (the
     difference of the rollouts with s and 2s substeps estimates the error of s;
     the smallest s = 1, 2, 4, ... under --substeps-tol wins).  When predictions blow
@@ -321,7 +329,9 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     model's normalisation) widened to hold the initial states; if more substeps
     avoid that, the RK4 step was too large and a --substeps N is suggested.
 
-    A MODEL trained on another system than SCENE's is rolled out, with a warning.
+    A MODEL trained on another system than SCENE's is rolled out, with a warning.  An
+    ensemble MODEL writes its members' mean as x and its calibrated spread as x_std
+    (--plot shades the 90% band).
     Exit status: 0 written; 2 bad input (also: more trajectories or steps than memory
     holds, refused before any work; OUTPUT being written by another run); 3 predictions
     non-finite (nothing written); 4 the system refused (OUTPUT could not be written).
