@@ -143,3 +143,19 @@ def test_inspect_and_plot_of_an_ensemble(tmp_path, ensemble, tiny_file):
     res = run("eval", model, data, "--reference-sample", 0, "--plot", fig)
     assert res.exit_code == 0 and fig.stat().st_size > 0, res.output
     assert "90% band" in res.output
+
+
+def test_members_share_the_split_and_a_bootstrap_resamples_only_training(tiny_linear):
+    from mpnode.training import TrainConfig
+    from mpnode.training.batches import TrainingData, bootstrap_sample
+
+    data = [tiny_linear(B=40, T=4)]
+    a = TrainingData(data, TrainConfig(seed=0, split_seed=0, bootstrap=True).check())
+    b = TrainingData(data, TrainConfig(seed=1, split_seed=0, bootstrap=True).check())
+    (tr, va), = a.split
+    np.testing.assert_array_equal(tr, b.split[0][0])  # one validation split for every member
+    draws = [bootstrap_sample(tr, seed) for seed in (0, 1)]
+    for d in draws:
+        assert len(d) == len(tr) and set(d) <= set(tr) and len(set(d)) < len(tr)  # with replacement
+        assert not set(d) & set(va)
+    assert not np.array_equal(*draws)
