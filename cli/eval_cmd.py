@@ -1,6 +1,7 @@
 """`mpnode eval MODEL DATA` and `mpnode simulate MODEL SCENE`: use a trained model."""
 import json
 import os
+from dataclasses import dataclass
 
 import click
 
@@ -82,6 +83,14 @@ def check_plot(plot):
         from mpnode.plot import check_output
 
         check_output(plot)
+
+
+#: --start (eval, and simulate from a trajectory file)
+start_option = click.option(
+    "--start", type=click.Choice(["encoder", "fit"]), default="encoder", show_default=True,
+    help="How the warm-up gives each prediction its start: the model's initial-state estimate (its encoder, or "
+         "the first observation), or that estimate fitted to the warm-up's observations through the model (a few "
+         "hundred short rollouts).")
 
 
 def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20, substeps=None,
@@ -204,10 +213,7 @@ def format_reference(ref):
               help="Let the model see the first K observations of each trajectory before it predicts: a "
                    "model with an initial-state encoder estimates from them what was not measured and what "
                    "noise hides; the error counts the observations after them.")
-@click.option("--start", type=click.Choice(["encoder", "fit"]), default="encoder", show_default=True,
-              help="How the warm-up gives each prediction its start: the model's initial-state estimate "
-                   "(its encoder, or the first observation), or that estimate fitted to the warm-up's "
-                   "observations through the model (a few hundred short rollouts).")
+@start_option
 @click.option("--truth", type=click.Path(dir_okay=False), metavar="CLEAN.h5",
               help="Score against the clean states of the same trajectories in this file (DATA noisy); "
                    "default: DATA's own clean truth if it keeps one (mpnode generate --noise), else its "
@@ -305,17 +311,22 @@ def _or_why(make, stability):
 
 @main.command("simulate")
 @click.argument("model_file", metavar="MODEL", type=click.Path(dir_okay=False))
-@click.argument("scene")
+@click.argument("scene", metavar="SCENE|DATA")
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="Trajectory file to write (atomic).")
 @click.option("--trajectories", "-B", type=click.IntRange(min=1), help="Number of trajectories (scene default).")
 @click.option("--horizon", "-T", type=click.IntRange(min=1), help="Steps per trajectory (scene default).")
 @click.option("--seed", type=int, help="Seed of the initial states (same draws as `mpnode generate --seed`).")
+@click.option("--warmup", type=click.IntRange(min=1), metavar="K",
+              help="With a trajectory file DATA in place of SCENE: each simulation starts from the state the "
+                   "model estimates from the first K observations of a trajectory of DATA (default 1).")
+@start_option
 @plot_option("the simulated trajectories of the first nodes, per state dimension")
 @substeps_options
-def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, substeps, substeps_tol,
-                 max_substeps):
-    """Roll MODEL out on SCENE (built-in name or .toml): any graph, any number of nodes.
+def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup, start, plot, substeps,
+                 substeps_tol, max_substeps):
+    """Roll MODEL out on SCENE (built-in name or .toml): any graph, any number of nodes;
+    or onward from the trajectories of a trajectory file DATA (.h5).
 
     Initial states come from the scene's sampler, drawn exactly as `mpnode generate`
     draws them (trajectory b from SeedSequence(seed, spawn_key=(b,))), so a generated
@@ -329,6 +340,12 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     model's normalisation) widened to hold the initial states; if more substeps
     avoid that, the RK4 step was too large and a --substeps N is suggested.
 
+    From DATA, each trajectory's simulation starts at its first observation time, from
+    the state the model estimates from its first --warmup K observations (--start: its
+    encoder's estimate, or that fitted to them), on the trajectory's graph, and runs at
+    the model's dt to its last observation (or --horizon steps): past what was observed
+    when --horizon says so.  -B takes the first B trajectories.
+
     A MODEL trained on another system than SCENE's is rolled out, with a warning.  An
     ensemble MODEL writes its members' mean as x and its calibrated spread as x_std
     (--plot shades the 90% band).
@@ -336,53 +353,112 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, plot, s
     holds, refused before any work; OUTPUT being written by another run); 3 predictions
     non-finite (nothing written); 4 the system refused (OUTPUT could not be written).
     """
-    from dataclasses import replace
-
-    from data_gen import initial_states, load_scene
-    from data_gen.scenes import check_scene
-    from data_gen.systems import get_system
     from mpnode.base.atomic import check_outputs
     from mpnode.data import write_trajectories
     from mpnode.evaluation.evaluate import predictions_file, simulate, substeps_attrs
     from mpnode.model import Model
-    from mpnode.model.provenance import system_mismatch
 
     check_plot(plot)
     check_outputs({"--output": output, **({"--plot": plot} if plot else {})}, [model_file, scene])
     claim_outputs({"--output": output, "--plot": plot})
     model = Model.load(model_file)
-    s = load_scene(scene)
-    s = replace(s, **{k: v for k, v in dict(trajectories=trajectories, horizon=horizon, seed=seed).items()
-                      if v is not None})
-    check_scene(s, scene)  # the options too (the memory B and T need), before any work
-    system = get_system(s.system)
-    warning = system_mismatch(model, s.system, scene)
-    if warning:
-        click.echo(f"warning: {warning}", err=True)
-    if system.state_dim != model.spec.state_dim:
-        raise InputError(scene, "system", f"{s.system} has {system.state_dim} state dimensions per node but the "
-                         f"model has {model.spec.state_dim}", "a scene of the system the model learned")
     if model.spec.control_dim:
         raise InputError(model_file, "control_dim", f"the model takes controls (du = {model.spec.control_dim}) "
-                         "but scenes have none", "a model without controls")
-    x0, graphs, gi = initial_states(s)
-    model.check_nodes(s.graph.n_nodes, scene, "graph.nodes")
-    sim = simulate(model, x0, graphs, gi, s.horizon, substeps=substeps, substeps_tol=substeps_tol,
-                   max_substeps=max_substeps)
+                         "but simulate gives none", "a model without controls")
+    if scene.endswith((".h5", ".hdf5")):
+        st = _start_from_data(model, scene, trajectories, horizon, seed, warmup, start)
+    else:
+        st = _start_from_scene(model, scene, trajectories, horizon, seed, warmup)
+    sim = simulate(model, st.x0, st.graphs, st.graph_index, st.horizon, substeps=substeps,
+                   substeps_tol=substeps_tol, max_substeps=max_substeps)
     for line in format_substeps(sim.substeps, sim.substeps_report, sim.stability):
         click.echo(line.strip(), err=bool(sim.stability.get("message")) and "WARNING" in line)
     if plot:  # before the trajectory file, which refuses non-finite predictions: a blow-up gets its figure
         from mpnode.plot import plot_simulation
 
-        plot_simulation(sim.predictions, model.spec.dt, plot, state_names=list(system.state_names) or None,
-                        title=f"{os.path.basename(model_file)} ({model.kind}) on {s.name}", spread=sim.spread)
+        plot_simulation(sim.predictions, model.spec.dt, plot, state_names=st.state_names,
+                        title=f"{os.path.basename(model_file)} ({model.kind}) on {st.name}", spread=sim.spread)
         click.echo(f"wrote {plot}")
-    attrs = {"scene": s.name, "seed": s.seed, "description": f"{model.kind} rollout of {s.description}",
-             **s.graph.describe(), **substeps_attrs(sim.substeps, sim.substeps_report),
-             **({"state_names": list(system.state_names)} if system.state_names else {})}
-    pf = _or_why(lambda: predictions_file(sim.predictions, graphs, gi, model.spec.dt, s.system,
-                                          os.path.abspath(model_file), attrs=attrs, spread=sim.spread), sim.stability)
+    attrs = {**st.attrs, "description": f"{model.kind} rollout of {st.description}",
+             **substeps_attrs(sim.substeps, sim.substeps_report),
+             **({"state_names": st.state_names} if st.state_names else {})}
+    shown = model.spec.state_dim - model.latent_dims  # latent dimensions stay the model's
+    pred = sim.predictions[..., :shown]
+    spread = None if sim.spread is None else sim.spread[..., :shown]
+    pf = _or_why(lambda: predictions_file(pred, st.graphs, st.graph_index, model.spec.dt, st.system,
+                                          os.path.abspath(model_file), attrs=attrs, spread=spread), sim.stability)
     write_trajectories(output, pf)
-    node_steps = s.trajectories * s.graph.n_nodes * s.horizon
-    click.echo(f"wrote {output}: {s.name}, B={s.trajectories}, T={s.horizon}, N={s.graph.n_nodes}, "
+    b, n = st.x0.shape[:2]
+    node_steps = b * n * st.horizon
+    click.echo(f"wrote {output}: {st.name}, B={b}, T={st.horizon}, N={n}, "
                f"rollout {sim.seconds:.3g} s ({node_steps / max(sim.seconds, 1e-12):.3g} node-steps/s)")
+
+
+@dataclass
+class SimulationStart:
+    """Where `mpnode simulate` starts from and what its output says about it."""
+
+    x0: object
+    graphs: list
+    graph_index: object
+    horizon: int
+    system: str
+    name: str
+    description: str
+    state_names: list
+    attrs: dict
+
+
+def _start_from_scene(model, scene, trajectories, horizon, seed, warmup):
+    """The scene's initial states, drawn as `mpnode generate` draws them."""
+    from dataclasses import replace
+
+    from data_gen import initial_states, load_scene
+    from data_gen.scenes import check_scene
+    from data_gen.systems import get_system
+
+    if warmup is not None:
+        raise InputError(scene, "--warmup", "needs observations to warm up on, and a scene has none",
+                         "a trajectory file (.h5) in place of the scene, or no --warmup")
+    s = load_scene(scene)
+    s = replace(s, **{k: v for k, v in {"trajectories": trajectories, "horizon": horizon, "seed": seed}.items()
+                      if v is not None})
+    check_scene(s, scene)  # the options too (the memory B and T need), before any work
+    system = get_system(s.system)
+    _warn_system(model, s.system, scene)
+    if system.state_dim != model.spec.state_dim:
+        raise InputError(scene, "system", f"{s.system} has {system.state_dim} state dimensions per node but the "
+                         f"model has {model.spec.state_dim}", "a scene of the system the model learned")
+    x0, graphs, gi = initial_states(s)
+    model.check_nodes(s.graph.n_nodes, scene, "graph.nodes")
+    return SimulationStart(x0, graphs, gi, s.horizon, s.system, s.name, s.description,
+                           list(system.state_names) or None, {"scene": s.name, "seed": s.seed, **s.graph.describe()})
+
+
+def _start_from_data(model, path, trajectories, horizon, seed, warmup, start):
+    """Each trajectory of the file at ``path`` continued from its first ``warmup`` observations."""
+    from mpnode.data import read_trajectories
+    from mpnode.evaluation.evaluate import continue_from, subset
+
+    if seed is not None:
+        raise InputError(path, "--seed", "draws a scene's initial states, and a trajectory file brings its own",
+                         "no --seed with a trajectory file")
+    traj = read_trajectories(path)
+    if trajectories is not None:
+        traj = subset(traj, list(range(min(trajectories, traj.n_trajectories))))
+    _warn_system(model, traj.system, path)
+    x0, steps = continue_from(model, traj, warmup or 1, start, path)
+    names = traj.attrs.get("state_names")
+    return SimulationStart(x0, traj.graphs, traj.graph_index, horizon or steps, traj.system,
+                           os.path.basename(path), f"the trajectories of {os.path.basename(path)}",
+                           list(names) if names is not None else None,
+                           {"simulated_from": os.path.abspath(path), "warmup": warmup or 1})
+
+
+def _warn_system(model, system, source):
+    """Say so on standard error when ``model`` learned another system than ``source``'s."""
+    from mpnode.model.provenance import system_mismatch
+
+    warning = system_mismatch(model, system, source)
+    if warning:
+        click.echo(f"warning: {warning}", err=True)

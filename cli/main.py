@@ -26,6 +26,8 @@ class _Group(click.Group):
             _fail(e, "input")
         except NumericalError as e:
             _fail(e, "numerical")
+        except BrokenPipeError:  # the reader of our output went away (`mpnode eval ... | head`): not a failure
+            _quiet_exit()
         except OSError as e:
             _fail(explain(e), "system")
         except MemoryError:
@@ -34,6 +36,14 @@ class _Group(click.Group):
         except ImportError as e:
             missing = getattr(e, "name", None)
             _fail(f"{e} (mpnode needs it: pip install {missing.split('.')[0]})" if missing else e, "system")
+
+
+def _quiet_exit():
+    """Stop without a word: nobody reads standard output any more (its pipe closed)."""
+    import os
+
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's own flush at exit must not fail
+    sys.exit(0)
 
 
 def _fail(message, kind):

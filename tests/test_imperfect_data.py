@@ -227,7 +227,7 @@ def test_the_worked_example_runs_as_written(tmp_path, monkeypatch):
     commands = blocks[1][1]
     assert commands.count("--time-limit 5m") == 1
     run_shell(commands.replace("--time-limit 5m", "--epochs 2"), tmp_path)
-    assert (tmp_path / "log_eval.png").exists()
+    assert (tmp_path / "log_eval.png").exists() and read_trajectories(tmp_path / "log_onward.h5").horizon == 400
     log = read_trajectories(tmp_path / "log.h5")
     assert not log.regular and log.unmeasured_dims().tolist() == [1]
 
@@ -302,3 +302,25 @@ def test_a_gap_too_long_for_the_models_step_is_refused_naming_the_file(tmp_path)
     Model.create(2, message_dim=2, hidden=4, dt=0.01).save(tmp_path / "m.h5")
     res = CliRunner().invoke(main, ["eval", str(tmp_path / "m.h5"), str(tmp_path / "gap.h5"), "--reference-sample", "0"])
     assert res.exit_code == 2 and "gap.h5: t: has a gap of 49.8" in res.output and "split the trajectory" in res.output
+
+
+def test_simulate_continues_a_files_trajectories_from_their_warm_up_as_eval_predicts_them(degraded, tmp_path):
+    clean, bad = degraded["clean"], degraded["bad"]
+    run = CliRunner().invoke
+    model = str(tmp_path / "m.h5")
+    assert run(main, ["train", bad, "-o", model, "--epochs", "2", "--hidden", "8"]).exit_code == 0
+    pred, sim = str(tmp_path / "p.h5"), str(tmp_path / "s.h5")
+    res = run(main, ["eval", model, clean, "--warmup", "4", "--predictions", pred, "--reference-sample", "0"])
+    assert res.exit_code == 0, res.output
+    res = run(main, ["simulate", model, clean, "-o", sim, "--warmup", "4", "--horizon", "40"])
+    assert res.exit_code == 0, res.output
+    p, s = read_trajectories(pred), read_trajectories(sim)
+    assert s.horizon == 40 and s.attrs["warmup"] == 4
+    np.testing.assert_allclose(s.x[:, :21], p.x, rtol=1e-5, atol=1e-6)  # the file's span, then onward
+    res = run(main, ["simulate", model, bad, "-o", sim, "--warmup", "4", "-B", "3"])
+    assert res.exit_code == 0, res.output
+    b = read_trajectories(bad)
+    span = np.nanmax(b.t[:3], axis=1) - b.t[:3, 0]
+    assert read_trajectories(sim).horizon == int(np.ceil(span.max() / Model.load(model).spec.dt - 1e-9))
+    res = run(main, ["simulate", model, "coupled_pendulum", "-o", sim, "--warmup", "4"])
+    assert res.exit_code == 2 and "a scene has none" in res.output

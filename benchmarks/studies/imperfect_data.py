@@ -65,16 +65,16 @@ def chain_scene(folder, n):
     return path
 
 
-def chain(folder, minutes, lock):
+def chain(folder, budget, lock):
     """Clean regular data: trained on chains of 3, 4 and 5 pendulums (100 trajectories each) for
-    ``minutes``, scored on fresh chains of 3 to 5 and zero-shot on a chain of 10."""
+    ``budget`` (train flags), scored on fresh chains of 3 to 5 and zero-shot on a chain of 10."""
     train = [folder / f"chain{n}_train.h5" for n in (3, 4, 5)]
     for n, path in zip((3, 4, 5), train):
         if not path.exists():
             mpnode("generate", chain_scene(folder, n), "-o", path, "-B", 100, "--seed", 11)
     model = folder / "chain345.h5"
     if not model.exists():
-        mpnode("train", *train, "-o", model, "--time-limit", f"{minutes}m", lock=lock)
+        mpnode("train", *train, "-o", model, *budget, lock=lock)
     rows = []
     for n in (3, 4, 5, 10):
         test = folder / f"chain{n}_test.h5"
@@ -110,11 +110,12 @@ def main(argv=None):
                    help="also train CONDITION with this train flag (a variant row), e.g. noise:--encoder-window=5")
     p.add_argument("--lock", type=Path, help="hold this file's lock while a model trains (one timed run at a time)")
     p.add_argument("--chain", action="store_true", help="instead: chains of pendulums, trained on 3, 4 and 5 and "
-                   "scored zero-shot on 10 (clean, regular data; --minutes)")
+                   "scored zero-shot on 10 (clean, regular data)")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    budget = ["--epochs", args.epochs] if args.epochs else ["--time-limit", f"{args.minutes}m"]
     if args.chain:
-        for row in chain(args.out, args.minutes, args.lock):
+        for row in chain(args.out, budget, args.lock):
             print(json.dumps(row), flush=True)
         return
     cells = [(c, c, []) for c in args.conditions.split(",")]
@@ -124,7 +125,6 @@ def main(argv=None):
     rows = []
     for system in args.systems.split(","):
         for condition, label, extra in cells:
-            budget = ["--epochs", args.epochs] if args.epochs else ["--time-limit", f"{args.minutes}m"]
             rows.append(run(args.out, system, condition, label.replace(" ", "_").replace("=", ""), extra,
                             budget, args.lock))
             rows[-1]["condition"] = label

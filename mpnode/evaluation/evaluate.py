@@ -218,6 +218,22 @@ def start_states(model, traj, warmup, start="encoder"):
     return x0
 
 
+def continue_from(model, traj, warmup=1, start="encoder", source="data"):
+    """(x0 (B, N, dx), steps): where simulations of ``traj``'s trajectories start -- the state at
+    each one's first observation time, estimated from its first ``warmup`` observations
+    (`start_states`) -- and the steps of the model's dt that reach the last observation of the
+    longest, so that a simulation covers the observed span and goes on from there."""
+    traj = model.fitted(traj)
+    check_data(model, [traj], [source], allow_dt_mismatch=True)
+    if warmup > traj.horizon + 1:
+        raise InputError(source, "x", f"has {traj.horizon + 1} observations per trajectory, fewer than the "
+                         f"warm-up of {warmup}", f"--warmup {traj.horizon + 1} or less")
+    times = traj.times()
+    span = float(np.nanmax(np.nanmax(times, axis=1) - times[:, 0]))
+    steps = max(1, math.ceil(span / model.spec.dt - 1e-9))
+    return start_states(model, traj, warmup, start), steps
+
+
 #: how a warm-up gives a rollout its start
 STARTS = ("encoder", "fit")
 
