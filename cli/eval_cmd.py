@@ -165,9 +165,9 @@ def format_spread(r):
     """An ensemble's lines: how often the truth lies inside its bands, the error it expects, and
     whether its spread ranks the trajectories' errors."""
     names = r.get("state_names") or [f"x[{k}]" for k in range(len(r["spread_per_dim"]))]
-    return [f"  ensemble: the truth inside the central 50% band {_pct(r['coverage_50'])} of the time, inside the "
-            f"90% band {_pct(r['coverage_90'])} (steps 1..{r['horizon']}, all nodes and dimensions)",
-            f"  spread (calibrated std, mean over trajectories, steps and nodes): "
+    return [(f"  ensemble: the truth inside the central 50% band {_pct(r['coverage_50'])} of the time, inside the "
+             f"90% band {_pct(r['coverage_90'])} (steps 1..{r['horizon']}, all nodes and dimensions)"),
+            "  spread (calibrated std, mean over trajectories, steps and nodes): "
             + ", ".join(f"{n}: {_g(v)}" for n, v in zip(names, r["spread_per_dim"]))
             + f"; as a normalised MSE {_g(r['spread_nmse'])} (the error it expects; measured: {_g(r['nmse'])})",
             f"  spread against error across trajectories: Spearman {_g(r['spread_error_spearman'])}"]

@@ -12,7 +12,8 @@ from mpnode import Model
 from mpnode.base.errors import InputError
 from mpnode.data import read_trajectories
 from mpnode.evaluation import evaluate
-from mpnode.model import Ensemble, file as model_file
+from mpnode.model import Ensemble
+from mpnode.model import file as model_file
 from mpnode.model.ensemble import coverage, fitted_scale
 
 

@@ -21,8 +21,8 @@ from mpnode.engine.schedule import MAX_STEPS_PER_INTERVAL
 
 from . import encoder
 from . import file as model_file
-from .ensemble import Ensemble
 from .config import configured
+from .ensemble import Ensemble
 
 
 class Model:
