@@ -160,3 +160,10 @@ def test_members_share_the_split_and_a_bootstrap_resamples_only_training(tiny_li
         assert len(d) == len(tr) and set(d) <= set(tr) and len(set(d)) < len(tr)  # with replacement
         assert not set(d) & set(va)
     assert not np.array_equal(*draws)
+
+
+def test_one_run_refuses_to_drop_an_ensemble_silently(tmp_path, tiny_file):
+    from mpnode.runs import train
+
+    with pytest.raises(InputError, match="ensemble"):
+        train([tiny_file(tmp_path / "d.h5", B=8, T=4)], str(tmp_path / "m.h5"), {"ensemble": 3, "epochs": 1})

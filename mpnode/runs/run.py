@@ -130,6 +130,7 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     datasets = [t.with_hidden_dims(latent) for t in datasets]
     options, chosen = with_recipe(options, recipe_name, datasets)
     model_config, config = split_options(options)
+    one_model(config)
     names = list(map(str, names or paths))
     data = TrainingData(datasets, config, names)
     model = None if resume else new_model(data, model_config, config)
@@ -172,6 +173,7 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
         if warning and notify:
             notify(f"warning: {warning}")
     model_config, config = split_options({"norm": "refit" if refit_norm else "keep", **options})
+    one_model(config)
     if model is not None and "substeps" in options:
         model = model.with_spec(substeps=model_config.substeps)
     names = list(map(str, names or paths))
@@ -179,6 +181,14 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
                    finetune_recipe=recipe_name)
     return fit(model, TrainingData(datasets, config, names), config, output, resume=resume, progress=progress,
                notify=notify, model_attrs=attrs)
+
+
+def one_model(config):
+    """InputError for ``ensemble`` > 1: `train` and `finetune` make one model (a sweep key or an
+    options dict asking for more would otherwise be dropped silently)."""
+    if config.ensemble > 1:
+        raise InputError("options", "ensemble", f"is {config.ensemble}", "1 here; K members into one file: "
+                         "mpnode.runs.ensemble.train_ensemble (mpnode train --ensemble K)")
 
 
 def _arguments(where, paths, output, options, resume):
