@@ -97,15 +97,20 @@ def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20
                         substeps_tol=None, max_substeps=None, warmup=0, truth=None, start="encoder"):
     """Evaluate, and time the reference simulator beside the model when the file names one:
     returns (EvalResult, report dict)."""
+    from data_gen.invariants import invariant_of
     from data_gen.reference import speed_against_reference
     from mpnode.evaluation import stepsize
     from mpnode.evaluation.evaluate import evaluate
+    from mpnode.plot import dimension_names
 
+    invariant = invariant_of(traj)
     result = evaluate(model, traj, source=source, allow_dt_mismatch=allow_dt, substeps=substeps,
                       substeps_tol=substeps_tol or stepsize.DEFAULT_TOL,
                       max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS, warmup=warmup, truth=truth,
-                      start=start)
-    report = {"data": source, **result.summary(), "state_names": traj.attrs.get("state_names")}
+                      start=start, invariant=invariant and invariant[1],
+                      state_names=dimension_names(model.fitted(traj).attrs, model.spec.state_dim))
+    report = {"data": source, **result.summary(), "state_names": traj.attrs.get("state_names"),
+              **({"invariant": invariant[0]} if invariant else {})}
     if reference_sample > 0 and traj.regular:
         report["reference"] = speed_against_reference(model, traj, result, reference_sample)
     return result, report
@@ -132,6 +137,7 @@ def format_report(report, model_name):
                      + (f" (dimension(s) {r['hidden_dims']} never measured in training: not scored)"
                         if r.get("hidden_dims") else ""))
     lines.append("  per step: " + ", ".join(f"{s}: {_g(per[s])}" for s in steps))
+    lines += format_trust(r)
     if r["first_bad_step"] is None:
         lines.append("  blow-ups: none (every prediction finite and inside 10x the data's range)")
     else:
@@ -175,6 +181,29 @@ def format_spread(r):
 
 def _pct(v):
     return v if isinstance(v, str) else f"{100 * v:.1f}%"
+
+
+def format_trust(r):
+    """The report's lines on how far to trust the error: by block of steps, off the training range,
+    the invariant's drift."""
+    blocks = r.get("nmse_by_block") or []
+    lines = ["  error against horizon (nMSE by block of steps): " + ", ".join(
+        f"{b['steps'][0]}-{b['steps'][1]}: {_g(b['value']) if b['value'] is not None else '-'}" for b in blocks)]
+    drift = r.get("invariant_drift_by_block")
+    if drift:
+        lines.append(f"  drift of the {r['invariant']} (|I(t) - I(0)| / |I(0)|, mean over trajectories; the truth's "
+                     "in brackets): " + ", ".join(f"{b['steps'][0]}-{b['steps'][1]}: {_g(b['value'])} "
+                                                  f"[{_g(b['truth']) if b['truth'] is not None else '-'}]" for b in drift
+                                                  if b["value"] is not None))
+    if not r.get("training_ranges_recorded", True):
+        lines.append("  off the training range: not checked (the model file records no training ranges; "
+                     "`mpnode finetune` with --epochs 1 records them)")
+    elif not r.get("off_range"):
+        lines.append("  off the training range: no input left the range seen in training")
+    else:
+        lines.append(f"  OFF THE TRAINING RANGE ({len(r['off_range'])} quantities; expect larger errors):")
+        lines += [f"    {e['message']}" for e in r["off_range"]]
+    return lines
 
 
 def format_reference(ref):
@@ -240,6 +269,15 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     report says which setting, what was tried, and whether the model is faster or slower.
     A MODEL trained on another system than DATA's is evaluated, with a warning.
 
+    How far to trust the error: the nMSE by block of steps (error against horizon;
+    --json: nmse_by_block); the inputs of the model's rollouts that leave the ranges it
+    saw in training (the states per dimension, the in-degree, each aggregate input, the
+    number of nodes; beyond a margin of 25% of the seen width), one warning per quantity
+    on standard error and in the report, naming the value, the bound, by how much and
+    where (--json: off_range, [] when none left); and, for data whose system conserves a
+    quantity (data_gen names it: the coupled pendulum's energy), its drift along the
+    predictions beside the truth's (--json: invariant_drift_by_block).
+
     An ensemble MODEL (train --ensemble K): the error is the members' mean's; the report
     adds the spread (the members' std times the scale fitted on validation data at
     training time) per dimension (--json: spread_per_node, N x dx), the fraction of true
@@ -261,8 +299,7 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     nothing is left behind).
     """
     from mpnode.base.atomic import check_outputs
-    from mpnode.data import read_trajectories, write_trajectories
-    from mpnode.evaluation.evaluate import predictions_file, substeps_attrs
+    from mpnode.data import read_trajectories
     from mpnode.model import Model
     from mpnode.model.provenance import system_mismatch
 
@@ -279,7 +316,7 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     result, report = evaluate_and_report(model, traj, data, allow_dt_mismatch, reference_sample, substeps,
                                          substeps_tol, max_substeps, warmup, clean, start)
     report["model"] = model_file
-    report["warnings"] = [warning] if warning else []
+    report["warnings"] = ([warning] if warning else []) + warn_off_range(report["off_range"])
     click.echo(json.dumps(report, indent=2, allow_nan=False) if as_json else format_report(report, model_file))
     if plot:  # before the predictions file, which refuses non-finite predictions: a blow-up gets its figure
         from mpnode.plot import plot_eval
@@ -288,16 +325,33 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
         if not as_json:
             click.echo(f"wrote {plot}")
     if predictions:
-        attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report),
-                 **{k: traj.attrs[k] for k in ("state_names",) if k in traj.attrs}}
-        pred = result.predictions[..., :traj.state_dim]  # a model's latent dimensions stay its own
-        spread = None if result.spread is None else result.spread[..., :traj.state_dim]
-        pf = _or_why(lambda: predictions_file(pred, traj.graphs, traj.graph_index, traj.dt, traj.system,
-                                              os.path.abspath(model_file), traj.u, attrs, traj.t, spread),
-                     result.stability)
-        write_trajectories(predictions, pf)
+        write_predictions(predictions, result, traj, data, model_file)
         if not as_json:
             click.echo(f"wrote {predictions}")
+
+
+def write_predictions(path, result, traj, data, model_file):
+    """The predictions file of `eval`: the prediction (an ensemble's mean) as x, an ensemble's
+    spread as x_std, on the data's graphs and times; nothing written if one is non-finite."""
+    from mpnode.data import write_trajectories
+    from mpnode.evaluation.evaluate import predictions_file, substeps_attrs
+
+    attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report),
+             **{k: traj.attrs[k] for k in ("state_names",) if k in traj.attrs}}
+    pred = result.predictions[..., :traj.state_dim]  # a model's latent dimensions stay its own
+    spread = None if result.spread is None else result.spread[..., :traj.state_dim]
+    pf = _or_why(lambda: predictions_file(pred, traj.graphs, traj.graph_index, traj.dt, traj.system,
+                                          os.path.abspath(model_file), traj.u, attrs, traj.t, spread),
+                 result.stability)
+    write_trajectories(path, pf)
+
+
+def warn_off_range(entries):
+    """Each input off the training range as a warning on standard error; returns the warnings."""
+    lines = [f"off the training range: {e['message']}" for e in entries]
+    for line in lines:
+        click.echo(f"warning: {line}", err=True)
+    return lines
 
 
 def _or_why(make, stability):
@@ -346,9 +400,11 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup,
     the model's dt to its last observation (or --horizon steps): past what was observed
     when --horizon says so.  -B takes the first B trajectories.
 
-    A MODEL trained on another system than SCENE's is rolled out, with a warning.  An
-    ensemble MODEL writes its members' mean as x and its calibrated spread as x_std
-    (--plot shades the 90% band).
+    A MODEL trained on another system than SCENE's is rolled out, with a warning, and so
+    is one whose inputs leave the ranges it saw in training (states, in-degree, aggregates,
+    number of nodes: one warning per quantity, see `mpnode eval --help`).  An ensemble
+    MODEL writes its members' mean as x and its calibrated spread as x_std (--plot shades
+    the 90% band).
     Exit status: 0 written; 2 bad input (also: more trajectories or steps than memory
     holds, refused before any work; OUTPUT being written by another run); 3 predictions
     non-finite (nothing written); 4 the system refused (OUTPUT could not be written).
@@ -370,7 +426,8 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup,
     else:
         st = _start_from_scene(model, scene, trajectories, horizon, seed, warmup)
     sim = simulate(model, st.x0, st.graphs, st.graph_index, st.horizon, substeps=substeps,
-                   substeps_tol=substeps_tol, max_substeps=max_substeps)
+                   substeps_tol=substeps_tol, max_substeps=max_substeps, state_names=st.state_names)
+    warn_off_range(sim.off_range or [])
     for line in format_substeps(sim.substeps, sim.substeps_report, sim.stability):
         click.echo(line.strip(), err=bool(sim.stability.get("message")) and "WARNING" in line)
     if plot:  # before the trajectory file, which refuses non-finite predictions: a blow-up gets its figure

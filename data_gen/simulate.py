@@ -37,6 +37,7 @@ from mpnode.data import Trajectories
 from mpnode.runs.executors import chunk_ranges, map_chunks, open_executor
 
 from .initial import get_sampler
+from .invariants import invariant_name
 from .scenes import check_scene
 from .systems import get_system
 
@@ -91,6 +92,8 @@ def generate(scene, *, workers=2, max_tries=10, progress=None, scheduler=None):
         attrs.update(initial_low=np.asarray(system.low), initial_high=np.asarray(system.high))
     if system.state_names:
         attrs["state_names"] = list(system.state_names)
+    if invariant_name(system.name):
+        attrs["invariant"] = invariant_name(system.name)
     return Trajectories(x=x, graphs=graphs, dt=scene.dt, system=system.name,
                         graph_index=graph_index if len(graphs) > 1 else None, attrs=attrs, params=drawn, aux=aux)
 

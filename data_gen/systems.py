@@ -39,6 +39,22 @@ def pendulum_rhs(t, y, m, l, k, g):
     return dy
 
 
+def spring_pendulums_rhs(t, y, m, l, k, g, A, degree):
+    """Pendulums joined by a spring along every edge of the graph; y = [theta_0, omega_0, ...],
+    shape (2N,) or (2N, K) (then one state per column).
+
+    theta_i'' = (sin(th_i) m (l om_i^2 - g) + k l sum_{j in N(i)} (sin(th_j) - sin(th_i))) / (m l cos(th_i)):
+    on the 2-node graph exactly `pendulum_rhs`.  A : sparse (N, N); degree : (N,) its row sums.
+    """
+    theta, omega = y[0::2], y[1::2]
+    s = np.sin(theta)
+    spring = A @ s - degree.reshape((-1,) + (1,) * (s.ndim - 1)) * s
+    dy = np.empty_like(y)
+    dy[0::2] = omega
+    dy[1::2] = (s * m * (l * omega**2 - g) + k * l * spring) / (m * l * np.cos(theta))
+    return dy
+
+
 def pendulum_guard(t, y):
     """min_i |cos(theta_i)| - PENDULUM_COS_MIN: positive while the pendulum RHS is defined.
 
@@ -168,6 +184,12 @@ def _pendulum(p, graph):
     return partial(pendulum_rhs, m=p["m"], l=p["l"], k=p["k"], g=p["g"])
 
 
+def _spring_pendulums(p, graph):
+    A = adjacency(graph)
+    return partial(spring_pendulums_rhs, m=p["m"], l=p["l"], k=p["k"], g=p["g"], A=A,
+                   degree=np.asarray(A.sum(axis=1)).ravel())
+
+
 def _lorenz(p, graph):
     return partial(lorenz_rhs, sigma=p["sigma"], rho=p["rho"], beta=p["beta"], H=np.asarray(p["H"]))
 
@@ -191,6 +213,10 @@ SYSTEMS = {
                low=(-np.pi / 4, -0.5), high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_pendulum,
                guard=pendulum_guard, n_nodes=2, complete=True,
                state_names=("angle (rad)", "angular velocity (rad/s)"),
+               time_scale=lambda p: 2 * np.pi * np.sqrt(abs(p["l"] / p["g"])) if p["g"] else np.inf),
+        System("spring_pendulums", 2, dict(m=1.0, l=1.5, k=2.0, g=9.81),
+               low=(-np.pi / 4, -0.5), high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_spring_pendulums,
+               guard=pendulum_guard, state_names=("angle (rad)", "angular velocity (rad/s)"),
                time_scale=lambda p: 2 * np.pi * np.sqrt(abs(p["l"] / p["g"])) if p["g"] else np.inf),
         System("lorenz", 3, dict(sigma=10.0, rho=28.0, beta=8.0 / 3.0, coupling=0.01),
                low=(-1.0,) * 3, high=(1.0,) * 3,

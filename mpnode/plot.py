@@ -201,7 +201,8 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
     ``trajectories``), the first ``nodes`` nodes, truth solid and prediction dashed.  Right:
     the normalised MSE per step (mean over trajectories, as `mpnode eval` reports it; the
     median and 10-90 % of the trajectories' own), the horizon thresholds and where the median
-    trajectory first exceeds each, and the first blow-up.  Returns the Figure; writes ``out``.
+    trajectory first exceeds each, the first blow-up, and the drift of a conserved quantity when
+    the evaluation measured one.  Returns the Figure; writes ``out``.
     """
     x = np.asarray(truth.x, dtype=np.float64)
     pred = np.asarray(result.predictions, dtype=np.float64)
@@ -253,7 +254,10 @@ def _error_panel(ax, x, pred, dt, result, times=None):
     if result.first_bad_step is not None:
         ax.axvline(result.first_bad_step * float(dt), color="k", lw=2, ls="-.",
                    label=f"first blow-up: t = {result.first_bad_step * float(dt):.3g}")
-    _log_axis(ax, np.concatenate([mean, own.ravel()]))
+    drift = [] if result.invariant_drift is None else np.asarray(result.invariant_drift[0])[1:]
+    if len(drift):  # a conserved quantity's relative drift along the predictions, on the same log axis
+        ax.plot(t[1:], _loggable(drift), color="C2", lw=1.5, label="drift of the conserved quantity, |I(t) - I(0)| / |I(0)|")
+    _log_axis(ax, np.concatenate([mean, own.ravel(), drift]))
     ax.set_xlim(0, t[-1])
     ax.set_xlabel(time_label(dt))
     ax.set_ylabel("normalised MSE (1 = predicting the mean)")

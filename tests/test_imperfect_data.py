@@ -214,7 +214,7 @@ def test_training_takes_such_data_as_they_are_and_eval_scores_after_a_warm_up(de
     for data, truth in ((noisy, None), (observations, clean), (observations, None)):
         res = run(main, ["eval", model, data, "--json", "--reference-sample", "0"] + (["--truth", truth] if truth else []))
         assert res.exit_code == 0, res.output
-        scores[data, truth] = json.loads(res.output)["nmse"]
+        scores[data, truth] = json.loads(res.stdout)["nmse"]  # warnings go to standard error
     assert scores[noisy, None] == scores[observations, clean] != scores[observations, None]
 
 

@@ -135,7 +135,7 @@ def test_kuramoto_rhs_matches_the_edge_sum():
 
 
 # ---- graphs ----------------------------------------------------------------------------
-@pytest.mark.parametrize("name", ["coupled_pendulum", "lorenz", "gene", "kuramoto"])
+@pytest.mark.parametrize("name", ["coupled_pendulum", "spring_pendulums", "lorenz", "gene", "kuramoto"])
 def test_every_right_hand_side_takes_states_as_columns(name):
     """The batched reference (data_gen.reference) evaluates K states at once as the columns of y
     (N*dx, K); each column must be exactly the right-hand side of that state alone."""
@@ -150,6 +150,21 @@ def test_every_right_hand_side_takes_states_as_columns(name):
     assert columns.shape == y.shape
     for k in range(4):
         np.testing.assert_array_equal(columns[:, k], f(0.0, y[:, k].copy()))
+
+
+def test_spring_pendulums_on_two_nodes_are_the_coupled_pendulum_and_springs_pull_along_edges():
+    p = SYSTEMS["spring_pendulums"].defaults
+    rng = np.random.default_rng(2)
+    y = rng.uniform(-0.6, 0.6, size=4)
+    pair = make_rhs("spring_pendulums", p, Graph.complete(2))(0.0, y)
+    np.testing.assert_allclose(pair, make_rhs("coupled_pendulum", p, Graph.complete(2))(0.0, y), rtol=1e-14)
+    chain = Graph.from_edges(3, [(0, 1), (1, 0), (1, 2), (2, 1)])
+    f = make_rhs("spring_pendulums", p, chain)
+    y = np.array([0.0, 0.0, 0.05, 0.0, 0.0, 0.0])  # the middle one displaced, all at rest
+    acc = f(0.0, y)[1::2]
+    assert acc[0] > 0 and acc[2] > 0 and acc[1] < 0 and np.isclose(acc[0], acc[2])
+    lin = -(p["g"] / p["l"]) * 0.05 - (p["k"] / p["m"]) * 2 * 0.05  # its two springs and gravity, small angle
+    assert abs(acc[1] - lin) < 0.005 * abs(lin)
 
 
 def test_dt_beyond_ten_time_scales_is_refused():

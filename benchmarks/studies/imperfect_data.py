@@ -61,7 +61,7 @@ def chain_scene(folder, n):
     path = folder / f"pendulum_chain{n}.toml"
     edges = ", ".join(f"[{i}, {i + 1}]" for i in range(n - 1))
     path.write_text(f'description = "{n} pendulums in a chain, springs between neighbours"\n'
-                    f'system = "coupled_pendulum"\n\n[graph]\nbuilder = "edges"\nnodes = {n}\nedges = [{edges}]\n')
+                    f'system = "spring_pendulums"\n\n[graph]\nbuilder = "edges"\nnodes = {n}\nedges = [{edges}]\n')
     return path
 
 

@@ -16,14 +16,16 @@ import numpy as np
 
 from mpnode.base.errors import InputError, NumericalError
 from mpnode.data import Trajectories
-from mpnode.model import batch_graph, check_data
+from mpnode.model import batch_graph, check_data, ranges
 from mpnode.model.start import fit_initial_state
 
 from . import stepsize
 from .metrics import (
     HORIZON_THRESHOLDS,
     blow_up_mask,
+    by_block,
     data_box,
+    invariant_drift,
     nmse_per_dimension,
     nmse_per_step,
     predictable_horizon,
@@ -46,6 +48,10 @@ class EvalResult:
     warmup : the observations each rollout's start was estimated from (scored from step max(1, warmup))
     nmse_per_dim : the normalised MSE of each state dimension (NaN: not scored)
     hidden_dims : the dimensions the model never saw measured in training: not scored
+    off_range : the inputs that left what the model saw in training (mpnode.model.ranges.off_range;
+        [] when none did), or None when its file records no training ranges
+    invariant_drift : (prediction's, truth's) relative drift per step (T+1,) of the quantity
+        ``evaluate(invariant=...)`` was given (metrics.invariant_drift), or None
     scored : (B, T+1, N, dx) what the predictions were scored against (NaN: not scored)
     member_std, spread : of an ensemble (predictions are its mean): the members' standard
         deviation and the calibrated spread (data units, the shape of predictions); else None
@@ -70,6 +76,8 @@ class EvalResult:
     warmup: int = 0
     nmse_per_dim: list = None
     hidden_dims: list = None
+    off_range: list = None
+    invariant_drift: tuple = None
     scored: np.ndarray = None
     member_std: np.ndarray = None
     spread: np.ndarray = None
@@ -90,20 +98,35 @@ class EvalResult:
                 "suggested_substeps": self.stability and self.stability["suggested_substeps"],
                 "stability": self.stability, "predictable_horizon": self.horizons, "warmup": self.warmup,
                 "nmse_per_dim": [num(float(v)) for v in self.nmse_per_dim or []], "hidden_dims": self.hidden_dims or [],
-                "coverage_50": None, "coverage_90": None, **(self.ensemble or {})}
+                **self.trust(), "coverage_50": None, "coverage_90": None, **(self.ensemble or {})}
+
+    def trust(self):
+        """The summary's entries that say how far to trust the error: nMSE by block of steps
+        (error against horizon), the inputs off the training range, the invariant's drift."""
+        def blocks(per_step):  # a blown-up block's inf as a string, as the summary's other numbers
+            return [dict(b, value=b["value"] if b["value"] is None or math.isfinite(b["value"]) else str(b["value"]))
+                    for b in by_block(per_step, max(self.warmup, 1))]
+
+        out = {"nmse_by_block": blocks(self.nmse_per_step), "off_range": self.off_range or [],
+               "training_ranges_recorded": self.off_range is not None}
+        if self.invariant_drift is not None:
+            pred, truth = (blocks(d) for d in self.invariant_drift)
+            out["invariant_drift_by_block"] = [dict(p, truth=t["value"]) for p, t in zip(pred, truth)]
+        return out
 
 
 @dataclass
 class SimulationResult:
     """predictions : ndarray, shape (B, T+1, N, dx), data units;  seconds : rollout wall time;
-    substeps, substeps_report, stability : as in EvalResult;  spread : an ensemble's calibrated
-    spread (the shape of predictions, data units), else None."""
+    substeps, substeps_report, stability, off_range : as in EvalResult;  spread : an ensemble's
+    calibrated spread (the shape of predictions, data units), else None."""
 
     predictions: np.ndarray
     seconds: float
     substeps: int
     substeps_report: dict
     stability: dict
+    off_range: list = None
     spread: np.ndarray = None
 
 
@@ -147,7 +170,8 @@ def with_substeps(model, substeps, x0, graphs, graph_index, u, horizon, tol, max
 
 def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=16384, substeps=None,
              substeps_tol=stepsize.DEFAULT_TOL, max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS,
-             horizon_thresholds=HORIZON_THRESHOLDS, check_stability=True, warmup=0, truth=None, start="encoder"):
+             horizon_thresholds=HORIZON_THRESHOLDS, check_stability=True, warmup=0, truth=None, start="encoder",
+             invariant=None, state_names=None):
     """Roll ``model`` out on every trajectory of ``traj`` and measure error and speed (EvalResult).
 
     Predictions fall at the file's observation times.  warmup : K, the first K observations
@@ -161,6 +185,9 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     file's dt differs and is not allowed; with ``allow_dt_mismatch`` the model runs at the file's dt.
     substeps : None (the model's own), an int, or "auto" (module docstring).
     check_stability : run `stepsize.stability_check` after the rollout (result.stability).
+    invariant : x (B, T+1, N, dx) -> (B, T+1), a quantity the true dynamics conserve, whose drift
+    along the predictions is measured (result.invariant_drift); the physics stays with the caller.
+    state_names : what to call the state dimensions in the off-range entries.
     """
     traj = model.fitted(traj)  # room for the model's latent dimensions, never observed
     truth = None if truth is None else _with_latent(np.asarray(truth, dtype=np.float64), traj.state_dim)
@@ -195,7 +222,20 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
                       int(bad[:, -1].sum()), seconds, b * n * (t1 - 1) / max(seconds, 1e-12), pred, b, t1 - 1, n,
                       model.spec.substeps, auto_report, stability,
                       predictable_horizon(pred, score, traj.dt, horizon_thresholds, bad), warmup,
-                      nmse_per_dimension(pred, score, clean).tolist(), hidden, score, member_std, spread, figures)
+                      nmse_per_dimension(pred, score, clean).tolist(), hidden,
+                      inputs_off_range(model, x0, traj.graphs, traj.graph_index, u, traj.horizon, times, state_names),
+                      None if invariant is None else invariant_drift(invariant, pred, clean),
+                      scored=score, member_std=member_std, spread=spread, ensemble=figures)
+
+
+def inputs_off_range(model, x0, graphs, graph_index, u, horizon, times=None, state_names=None):
+    """The inputs of the model's rollouts from x0 that leave what it saw in training
+    (mpnode.model.ranges; [] when none do), or None when the model records no training ranges."""
+    seen = model.attrs.get(ranges.KEY)
+    if not seen:
+        return None
+    model = getattr(model, "members", [model])[0]  # an ensemble: its first member's inputs
+    return ranges.off_range(seen, ranges.scan(model, x0, graphs, graph_index, u, horizon, times), state_names)
 
 
 def start_states(model, traj, warmup, start="encoder"):
@@ -303,7 +343,7 @@ def simulation_box(model, x0):
 
 
 def simulate(model, x0, graphs, graph_index, horizon, u=None, substeps=None, substeps_tol=stepsize.DEFAULT_TOL,
-             max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS):
+             max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS, state_names=None):
     """Roll ``model`` out from x0 (B, N, dx) on ``graphs[graph_index[b]]`` for ``horizon`` steps.
 
     A prediction blows up when it is non-finite or leaves ten times `simulation_box`; the
@@ -320,7 +360,9 @@ def simulate(model, x0, graphs, graph_index, horizon, u=None, substeps=None, sub
                                          blow_up_mask(pred, box=box), substeps_tol, max_substeps=max_substeps,
                                          box=box)
     spread = None if member_std is None else member_std * model.spread_scale
-    return SimulationResult(pred, seconds, model.spec.substeps, auto_report, stability, spread)
+    return SimulationResult(pred, seconds, model.spec.substeps, auto_report, stability,
+                            inputs_off_range(model, x0, graphs, graph_index, u, horizon, state_names=state_names),
+                            spread=spread)
 
 
 def learned_seconds_per_trajectory(model, traj, k, repeats=3):

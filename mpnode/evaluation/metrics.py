@@ -117,3 +117,33 @@ def predictable_horizon(pred, truth, dt, thresholds=HORIZON_THRESHOLDS, bad=None
                            "beyond_horizon": int((first >= t1).sum()),
                            "first_step": [int(f) if f < t1 else None for f in first]}
     return out
+
+
+#: how many blocks of steps `by_block` splits a horizon into
+HORIZON_BLOCKS = 5
+
+
+def by_block(per_step, first=1, blocks=HORIZON_BLOCKS):
+    """The mean of ``per_step`` (T+1,) over up to ``blocks`` equal blocks of steps first..T:
+    [{"steps": [a, b], "value": mean over a..b}] (NaN steps ignored; None where all are NaN)."""
+    per_step = np.asarray(per_step, dtype=np.float64)
+    steps = np.arange(first, len(per_step))
+    out = []
+    for part in np.array_split(steps, min(blocks, len(steps))) if len(steps) else []:
+        v = per_step[part]
+        v = v[~np.isnan(v)]
+        out.append({"steps": [int(part[0]), int(part[-1])], "value": float(v.mean()) if v.size else None})
+    return out
+
+
+def invariant_drift(invariant, pred, truth):
+    """How far a quantity the true dynamics conserve drifts along the predictions: per step, the
+    mean over trajectories of |I(pred_t) - I(truth_0)| / |I(truth_0)|, beside the same of the
+    true states (the reference integrator's own drift, or a sign that the quantity is not
+    conserved).  invariant : x (B, T+1, N, dx) -> (B, T+1).  Returns (pred's (T+1,), truth's)."""
+    with np.errstate(all="ignore"):
+        i_true = np.asarray(invariant(truth), dtype=np.float64)
+        i_pred = np.asarray(invariant(pred), dtype=np.float64)
+        scale = np.abs(i_true[:, :1])
+        rel = lambda i: np.nanmean(np.abs(i - i_true[:, :1]) / scale, axis=0)
+        return rel(i_pred), rel(i_true)

@@ -50,7 +50,8 @@ class Ensemble:
         common = {k: held[k] for k in ("spec", "x_mean", "x_std", "u_mean", "u_std")}
         info = {k: v for k, v in held["ensemble"].items() if k != "spread_scale"}
         seeds = info.get("member_seed")
-        members = [model_class(theta, attrs={} if seeds is None else {"seed": int(seeds[i])}, **common)
+        seen = {k: v for k, v in held["attrs"].items() if k == model_file.SEEN_ATTR}  # the training ranges
+        members = [model_class(theta, attrs={**seen, **({} if seeds is None else {"seed": int(seeds[i])})}, **common)
                    for i, theta in enumerate(held["theta"])]
         try:
             return cls(members, held["ensemble"]["spread_scale"], held["attrs"], info)

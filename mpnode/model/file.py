@@ -27,6 +27,9 @@ ENSEMBLE_VERSION = 5
 VERSIONS = (1, FORMAT_VERSION, LINEAR_PATH_VERSION, ENCODER_VERSION, ENSEMBLE_VERSION)
 #: the datasets under ensemble/ of an ensemble file: the spread's scale (dx,), then per member (K,)
 ENSEMBLE_ARRAYS = ("spread_scale", "member_seed", "member_epoch", "member_val_loss")
+#: the optional group of what the model saw in training (mpnode.model.ranges), and its key in attrs;
+#: any version may hold it, and a reader that does not know it ignores it
+SEEN, SEEN_ATTR = "seen", "seen_ranges"
 
 
 def version_of(spec, ensemble=False):
@@ -174,6 +177,8 @@ def read_model(path):
                     raise InputError(path, f"norm/{key}", "has a value <= 0", "standard deviations > 0")
             ensemble = None if k is None else _ensemble_arrays(f, path, k, dx)
             extra = {name: v for name, v in attrs.a.items() if name not in _SPEC_ATTRS}
+            if SEEN in f:
+                extra[SEEN_ATTR] = _seen(f, path)
     except InputError:
         raise
     except H5_DAMAGE as e:  # damaged bytes that h5py only notices while reading
@@ -220,6 +225,18 @@ def _dataset(f, path, name, shape):
     return arr
 
 
+def _seen(f, path):
+    """The training ranges of the optional group ``seen/``: {quantity_min, quantity_max: list}."""
+    out = {}
+    for name in f[SEEN]:
+        d = f[f"{SEEN}/{name}"]
+        if not hasattr(d, "dtype") or d.dtype.kind != "f" or d.ndim != 1:
+            raise InputError(path, f"{SEEN}/{name}", f"is {getattr(d, 'dtype', 'a group')}",
+                             "a 1-D float dataset (the range seen in training), or no seen/ group")
+        out[name] = d[()].astype(np.float64).tolist()
+    return out
+
+
 def spec_attrs(spec, members=None):
     """The root attributes that describe ``spec`` (format version `version_of`), and an
     ensemble's size when ``members`` (K) is given."""
@@ -237,8 +254,10 @@ def write_model(path, spec, params, norm, attrs, ensemble=None):
 
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         for k, v in attrs.items():
-            if k not in _SPEC_ATTRS and v is not None:
+            if k not in _SPEC_ATTRS and k != SEEN_ATTR and v is not None:
                 f.attrs[k] = v
+        for name, values in (attrs.get(SEEN_ATTR) or {}).items():
+            f[f"{SEEN}/{name}"] = np.asarray(values, dtype=np.float64)
         f.attrs.update(spec_attrs(spec, None if ensemble is None else len(next(iter(params.values())))))
         for name, arr in (ensemble or {}).items():
             f[f"ensemble/{name}"] = arr

@@ -16,6 +16,7 @@ from mpnode.base.graph import Graph, as_graph, is_networkx
 
 from .ensemble import Ensemble
 from .model import Model, batch_graph, node_intervals, to_time_major
+from .ranges import Watch
 
 
 class Simulator:
@@ -30,6 +31,10 @@ class Simulator:
     >>> x = sim.reset(x0)                  # (B, N, dx)
     >>> for t in range(T):
     ...     x = sim.step(controller(x))    # u (B, N, du), or step() without controls
+
+    An input that leaves the range the model saw in training (a state, the in-degree, an
+    aggregate, the number of nodes) is warned of once (mpnode.model.ranges.OffRangeWarning)
+    and listed in ``sim.off_range``.
     """
 
     def __init__(self, model, graph, backend="auto"):
@@ -66,6 +71,8 @@ class Simulator:
         self._zs = [engine.initial_state(spec, m.normalize_x(x0).reshape(-1, spec.state_dim), m.dtype)
                     for _ in self._models]
         self.steps = 0
+        self._watch = Watch(self._models[0], self.graph, x0.shape[0])  # an ensemble: its first member's inputs
+        self._watch(self._zs[0], None, 0)
         return self.state
 
     def warm_up(self, observations, times=None, u=None):
@@ -83,6 +90,7 @@ class Simulator:
             un = None if u is None else to_time_major(m.normalize_u(np.asarray(u)))
             self._zs = [engine.integrate(spec, one.theta, z, self._flat, un, k - 1, backend=self.backend,
                                          intervals=iv)[1] for one, z in zip(self._models, self._zs)]
+            self._watch(self._zs[0], None if un is None else un[-1], 0)
         return self.state
 
     def step(self, u=None):
@@ -104,7 +112,16 @@ class Simulator:
         self._zs = [engine.integrate(spec, one.theta, z, self._flat, u, 1, backend=self.backend)[1]
                     for one, z in zip(self._models, self._zs)]
         self.steps += 1
+        self._watch(self._zs[0], None if u is None else u[0], self.steps)
         return self.state
+
+    @property
+    def off_range(self):
+        """The inputs that have left what the model saw in training since ``reset`` (each quantity
+        once, where it first did: dicts as `mpnode.eval --json`'s ``off_range``); each was also
+        warned of (mpnode.model.ranges.OffRangeWarning).  [] for a model without recorded ranges."""
+        self._require_reset()
+        return list(self._watch.entries.values())
 
     @property
     def state(self):

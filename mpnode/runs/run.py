@@ -16,6 +16,8 @@ from mpnode.engine import numba_problem
 from mpnode.model import Model
 from mpnode.model.config import ModelConfig, configured
 from mpnode.model.provenance import system_mismatch
+from mpnode.model.ranges import KEY as RANGES
+from mpnode.model.ranges import training_ranges
 from mpnode.training import TrainConfig, fit, state_path
 from mpnode.training.batches import TrainingData
 from mpnode.training.recipes import finetune_recipe, recipe
@@ -139,7 +141,8 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     hidden = [int(k) for k in data.unmeasured_dims()]
     attrs = _attrs(names, datasets, recipe=recipe_name, schedule=config.schedule,
                    **({"unmeasured_dims": hidden} if hidden else {}))
-    return fit(model, data, config, output, resume=resume, progress=progress, notify=notify, model_attrs=attrs)
+    return with_ranges(fit(model, data, config, output, resume=resume, progress=progress, notify=notify,
+                           model_attrs=attrs), data.datasets, output)
 
 
 def finetune(model_path, paths, output, options=None, *, refit_norm=False, recipe_name="auto", resume=False,
@@ -179,8 +182,19 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=False, recip
     names = list(map(str, names or paths))
     attrs = _attrs(names, datasets, finetuned_from=parent_name or os.path.abspath(model_path),
                    finetune_recipe=recipe_name)
-    return fit(model, TrainingData(datasets, config, names), config, output, resume=resume, progress=progress,
-               notify=notify, model_attrs=attrs)
+    return with_ranges(fit(model, TrainingData(datasets, config, names), config, output, resume=resume,
+                           progress=progress, notify=notify, model_attrs=attrs), datasets, output)
+
+
+def with_ranges(result, datasets, output):
+    """``result`` with what its model saw in training recorded (mpnode.model.ranges), in the
+    model and in its file at ``output``: eval, simulate and the Simulator warn beyond them."""
+    seen = training_ranges(result.model, datasets, result.split)
+    result.model.attrs[RANGES] = seen
+    saved = Model.load(output)
+    saved.attrs[RANGES] = seen
+    saved.save(output)
+    return result
 
 
 def one_model(config):
