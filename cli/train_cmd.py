@@ -97,6 +97,15 @@ def training_options(f):
         click.option("--curriculum-epochs", type=click.IntRange(min=1), default=d.curriculum_epochs,
                      show_default=True, help="Epochs per window length of --curriculum (the full horizon "
                      "gets the rest)."),
+        click.option("--input-noise", type=click.FloatRange(min=0), default=d.input_noise, metavar="STD",
+                     help="Std of Gaussian noise, drawn afresh every epoch, added to the initial state of every "
+                     "training rollout (normalised units; the targets stay clean): the model learns to come back "
+                     "towards the data from states a little off them, as its own long rollouts are.  "
+                     f"Default: the recipe's ({d.input_noise:g} unless the README's recipe table says otherwise)."),
+        click.option("--train-window", type=click.IntRange(min=0), default=d.train_window, metavar="W",
+                     help="Train on windows of W steps (after any --curriculum) while the model is still chosen "
+                     "by its validation error over the files' full horizon (0: train on the full horizon).  "
+                     "Default: the recipe's (0 unless the README's recipe table says otherwise)."),
         click.option("--ensemble", type=click.IntRange(min=1), default=d.ensemble, show_default=True, metavar="K",
                      help="Train K models (members: seeds SEED, SEED+1, ...; one validation split) into one file, "
                           "in parallel (a process each on this machine, or on Dask with --scheduler).  Their "

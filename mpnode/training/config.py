@@ -27,6 +27,7 @@ class TrainConfig:
     ``patience`` epochs without a new best) or "cosine" (from lr down to min_lr over the
     budget: the epochs, or the time limit when that comes first); val_graphs: hold out
     that many whole graphs of every file with more graphs for validation (mpnode.training.batches).
+    input_noise and train_window are the long-rollout options (mpnode.training.loop).
     The defaults are the command line's (`mpnode train --help` says what each does).
     """
 
@@ -57,6 +58,8 @@ class TrainConfig:
     ensemble: int = 1
     bootstrap: bool = False
     split_seed: int = None
+    input_noise: float = 0.0
+    train_window: int = 0
 
     def check(self):
         """Raise InputError naming the option for a value that cannot work."""
@@ -117,12 +120,12 @@ class TrainConfig:
         """Every option of the right type and sign (the ranges that need more are checked in `check`)."""
         where = "training options"
         for name in ("epochs", "batch_size", "patience", "max_bad_steps", "seed", "curriculum_epochs", "val_graphs",
-                     "ensemble"):
+                     "ensemble", "train_window"):
             setattr(self, name, check_int(getattr(self, name), where, name, 0))
         if self.split_seed is not None:
             self.split_seed = check_int(self.split_seed, where, "split_seed", 0)
         self.bootstrap = check_bool(self.bootstrap, where, "bootstrap")
-        for name in ("lr", "beta1", "beta2", "eps", "clip", "val_split", "noise", "lr_decay", "min_lr",
+        for name in ("lr", "beta1", "beta2", "eps", "clip", "val_split", "noise", "input_noise", "lr_decay", "min_lr",
                      "blowup", "checkpoint_seconds"):
             setattr(self, name, check_number(getattr(self, name), where, name, least=0))
         for name in ("beta1", "beta2"):
@@ -135,6 +138,7 @@ class TrainConfig:
 
 
 def curriculum_stage(config, epoch):
-    """(stage, window) of epoch ``epoch`` (1-based): window is None in the full-horizon stage."""
+    """(stage, window) of epoch ``epoch`` (1-based): window is None in the full-horizon stage
+    (``train_window`` steps there when set)."""
     stage = min((epoch - 1) // config.curriculum_epochs, len(config.curriculum)) if config.curriculum else 0
-    return stage, (config.curriculum[stage] if stage < len(config.curriculum) else None)
+    return stage, (config.curriculum[stage] if stage < len(config.curriculum) else config.train_window or None)

@@ -21,6 +21,12 @@ on w2, ..., the rest on the full horizon, so a chaotic system is learned without
 exploding gradients of long rollouts from random weights.  Validation stays on the full
 horizon.  The stage is a function of the epoch number alone, which keeps resume exact.
 
+Long rollouts (both off by default): ``input_noise`` adds fresh Gaussian noise, drawn from the
+epoch number, to the initial state of every training rollout (the targets stay clean), so the
+model learns to return towards the data from states a little off them, as its own long rollouts
+are; ``train_window`` trains on windows of that many steps once any curriculum is over, while
+validation, which chooses the model, stays on the full horizon.
+
 Files beside the output model ``OUT``: ``OUT.log.jsonl`` (mpnode.training.log) and
 ``OUT.state``, the `TrainState` checkpoint.  This module knows nothing of any particular system.
 """
@@ -112,10 +118,12 @@ def run_epoch(state, parts, notify):
     new_theta = np.empty_like(theta)
     stats = EpochStats()
     rng = np.random.default_rng([config.seed, 5, state.epoch + 1])
+    noise_rng = np.random.default_rng([config.seed, 7, state.epoch + 1])
     for p, sel in epoch_batches(parts, config.batch_size, config.seed, state.epoch + 1):
         batch = parts[p].batch(sel)
         visible = warmups(rng, spec.encoder_window, len(sel), parts[p].n_nodes)
-        loss, gtheta = losses.batch_value_and_grad(spec, theta, batch, config.loss, visible)
+        kick = start_noise(noise_rng, config.input_noise, batch.x.shape[1:])
+        loss, gtheta = losses.batch_value_and_grad(spec, theta, batch, config.loss, visible, kick)
         grad[:] = gtheta
         problem = bad_loss(loss, grad, state.ref_loss, config)
         if problem is None:
@@ -130,6 +138,13 @@ def run_epoch(state, parts, notify):
         theta[:] = new_theta
         stats.add(loss, batch.x.shape[1], norm)
     return stats
+
+
+def start_noise(rng, std, shape):
+    """Fresh Gaussian noise (std ``std``, normalised units) on the initial states of a batch's
+    rollouts, or None: the inputs perturbed and the targets clean, so the model learns to come
+    back towards the data from states a little off them, as its own long rollouts will be."""
+    return rng.standard_normal(shape) * std if std > 0 else None
 
 
 def warmups(rng, window, n_trajectories, n_nodes):

@@ -75,11 +75,14 @@ def value_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes=None, dr
     return total, gtheta, gx0
 
 
-def batch_value_and_grad(spec, theta, batch, loss, visible):
+def batch_value_and_grad(spec, theta, batch, loss, visible, start_noise=None):
     """Loss and exact gradient of a training Batch (mpnode.training.batches), from the initial
     states the model's encoder estimates from the first ``visible`` observations (or the first
-    observation itself, without an encoder): the encoder's weights get their gradient too."""
+    observation itself, without an encoder): the encoder's weights get their gradient too.
+    start_noise : (M, dx) added to those initial states (the targets stay as they are), or None."""
     x0, cache = encoder.start(spec, theta, batch.x, batch.intervals, visible)
+    if start_noise is not None:
+        x0 = (x0 + start_noise).astype(x0.dtype)
     total, gtheta, gx0 = value_and_grad(spec, theta, batch.x, batch.graph, batch.u, loss, x0=x0,
                                         intervals=batch.intervals)
     encoder.gradient(spec, theta, cache, gx0, gtheta)
