@@ -106,6 +106,23 @@ def training_options(f):
                      help="Train on windows of W steps (after any --curriculum) while the model is still chosen "
                      "by its validation error over the files' full horizon (0: train on the full horizon).  "
                      "Default: the recipe's (0 unless the README's recipe table says otherwise)."),
+        click.option("--resume", is_flag=True,
+                     help="Continue the run whose checkpoint (OUTPUT.state) is beside -o; its settings are kept "
+                          "except --epochs and --time-limit."),
+        click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+                     help="Model file to write: the best model so far (saved atomically at most every 10 s and at the end)."),
+        plot_option("the training and validation loss per epoch, the validation normalised MSE and the learning "
+                    "rate (from the training log, at the end of the run, whatever its outcome)"),
+    ]
+    for opt in reversed(options):
+        f = opt(f)
+    return f
+
+
+def ensemble_options(f):
+    """--ensemble and --bootstrap (train and finetune); --time-limit is then the ensemble's."""
+    d = DEFAULT
+    options = [
         click.option("--ensemble", type=click.IntRange(min=1), default=d.ensemble, show_default=True, metavar="K",
                      help="Train K models (members: seeds SEED, SEED+1, ...; one validation split) into one file, "
                           "in parallel (a process each on this machine, or on Dask with --scheduler).  Their "
@@ -116,13 +133,6 @@ def training_options(f):
                      help="With --ensemble: each member trains on a resample (with replacement) of the training "
                           "trajectories (the validation split stays one): members that saw different data disagree "
                           "where data are thin.  Default: off (members differ by seed only)."),
-        click.option("--resume", is_flag=True,
-                     help="Continue the run whose checkpoint (OUTPUT.state) is beside -o; its settings are kept "
-                          "except --epochs and --time-limit."),
-        click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
-                     help="Model file to write: the best model so far (saved atomically at most every 10 s and at the end)."),
-        plot_option("the training and validation loss per epoch, the validation normalised MSE and the learning "
-                    "rate (from the training log, at the end of the run, whatever its outcome)"),
     ]
     for opt in reversed(options):
         f = opt(f)
@@ -304,6 +314,7 @@ def print_validation(result):
 @click.option("--trajectories", type=click.IntRange(min=2), default=SCENE_TRAJECTORIES, show_default=True,
               help="Only when DATA is a scene: trajectories to generate.")
 @training_options
+@ensemble_options
 @scheduler_option
 def train_cmd(data, trajectories, recipe, **o):
     """Learn a model from trajectory files DATA... (same dx, du and dt; graphs and N may differ).
@@ -436,6 +447,7 @@ def _evaluate_on_fresh(scene, model, output, seed):
                    "state dimension by the new data's spread (as `mpnode eval` does).")
 @recipe_option("the paper's training settings: plateau schedule, batch 128")
 @training_options
+@ensemble_options
 @scheduler_option
 def finetune_cmd(model_file, data, refit_norm, recipe, **o):
     """Continue training MODEL on DATA... and write the result to OUTPUT.
