@@ -86,6 +86,7 @@ def scheduler_option(f):
 from . import (
     convert_cmd,  # noqa: E402,F401
     eval_cmd,  # noqa: E402,F401
+    export_cmd,  # noqa: E402,F401
     generate_cmd,  # noqa: E402,F401
     inspect_cmd,  # noqa: E402,F401
     sweep_cmd,  # noqa: E402,F401

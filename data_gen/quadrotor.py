@@ -75,11 +75,13 @@ CONTROL = dict(
 # ---- physics ------------------------------------------------------------------------
 @njit(cache=True)
 def _rhs_columns(Y, F, P, Jd, g, out):
-    """dY/dt for each column of Y (shape (13 n + 6, k)); P = [m_q, L, k_m, m_L, d, k_c, c_c]."""
+    """dY/dt for each column of Y (shape (13 n + 6, k)); P = [m_q, L, k_m, m_L, d, k_c, c_c].
+    F (n, 4, 1): the thrusts of every column, or (n, 4, k): each column's own."""
     n = F.shape[0]
     m_q, L, k_m, m_L, d, k_c, c_c = P[0], P[1], P[2], P[3], P[4], P[5], P[6]
     oL = 13 * n
     for k in range(Y.shape[1]):
+        kf = k if F.shape[2] > 1 else 0
         rLx, rLy, rLz = Y[oL, k], Y[oL + 1, k], Y[oL + 2, k]
         vLx, vLy, vLz = Y[oL + 3, k], Y[oL + 4, k], Y[oL + 5, k]
         aLx, aLy, aLz = g[0], g[1], g[2]
@@ -102,7 +104,7 @@ def _rhs_columns(Y, F, P, Jd, g, out):
             bx = 2.0 * (qx * qz + qw * qy) / qq
             by = 2.0 * (qy * qz - qw * qx) / qq
             bz = (qw * qw - qx * qx - qy * qy + qz * qz) / qq
-            F1, F2, F3, F4 = F[i, 0], F[i, 1], F[i, 2], F[i, 3]
+            F1, F2, F3, F4 = F[i, 0, kf], F[i, 1, kf], F[i, 2, kf], F[i, 3, kf]
             thrust = F1 + F2 + F3 + F4
             out[o, k], out[o + 1, k], out[o + 2, k] = vx, vy, vz
             # q' = 1/2 q (x) [0, w]
@@ -156,10 +158,12 @@ class Physics:
             raise AttributeError(name) from None
 
     def rhs(self, t, y, F):
-        """dy/dt; y shape (13 n + 6,) or (13 n + 6, k) (solve_ivp's vectorized form); F shape (n, 4)."""
+        """dy/dt; y shape (13 n + 6,) or (13 n + 6, k) (solve_ivp's vectorized form); F shape (n, 4),
+        or (n, 4, k): each column of y under its own thrusts (batched predictions, e.g. a controller's)."""
         Y = y if y.ndim == 2 else y[:, None]
+        F = np.asarray(F, dtype=np.float64)
         out = np.empty(Y.shape)
-        _rhs_columns(Y, np.ascontiguousarray(F, dtype=np.float64), self.packed, self.J, self.g, out)
+        _rhs_columns(Y, np.ascontiguousarray(F if F.ndim == 3 else F[:, :, None]), self.packed, self.J, self.g, out)
         self.evaluations += Y.shape[1]
         return out if y.ndim == 2 else out[:, 0]
 

@@ -5,7 +5,8 @@ The built-in scenes are the data sets of the MP-NODE paper (docs/systems.md);
 anything else is a TOML file with this schema (example: scenes/example_gene_ring.toml)::
 
     description  = "one line"   # optional
-    system       = "gene"       # required: coupled_pendulum | lorenz | gene | kuramoto | quadrotor_load
+    system       = "gene"       # required: coupled_pendulum | coupled_pendulum_force | lorenz | gene |
+                                #   kuramoto | quadrotor_load
     trajectories = 1000         # optional, B >= 1
     horizon      = 50           # optional, T >= 1 steps
     dt           = 0.05         # optional, > 0
@@ -111,6 +112,8 @@ BUILTIN = {
     for s in [
         Scene("coupled_pendulum", "two pendulums joined by a spring", "coupled_pendulum",
               GraphSpec("edges", 2, edges=((0, 1),))),
+        Scene("pendulum_force", "the coupled pendulums pushed by random horizontal forces on the bobs (controls)",
+              "coupled_pendulum_force", GraphSpec("edges", 2, edges=((0, 1),))),
         _lorenz(3, 0.01, ""), _lorenz(7, 0.01, ""), _lorenz(10, 0.01, ""),
         _lorenz(10, 1.0, "_medium"), _lorenz(10, 5.0, "_high"), _lorenz(10, 0.01, "_10s", horizon=200),
         *(_gene(n, kind) for n in (16, 64) for kind in ("er", "ba", "ws")),

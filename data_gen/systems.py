@@ -18,7 +18,7 @@ import scipy.sparse
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph
 
-from . import quadrotor
+from . import forced_pendulum, quadrotor
 
 #: the pendulum is refused where |cos(theta)| falls below this (the RHS divides by it)
 PENDULUM_COS_MIN = 1e-6
@@ -131,7 +131,7 @@ class System:
     n_nodes : the only node count the system is defined for, or None
     complete : the physics couples every pair (the graph must be complete)
     samplers : initial-state samplers that make sense for it (see initial.py)
-    generator : closed-loop systems only (quadrotor_load): generator(scene, workers=, max_tries=,
+    generator : systems with controls only (quadrotor_load, coupled_pendulum_force): generator(scene, workers=, max_tries=,
         progress=) -> Trajectories, which then owns initial states, controls and aux data
     state_names : one name (with its unit where there is one) per state dimension; files
         carry them as the attribute ``state_names`` and the figures label their axes with them
@@ -190,6 +190,10 @@ def _spring_pendulums(p, graph):
                    degree=np.asarray(A.sum(axis=1)).ravel())
 
 
+def _forced_pendulum(p, graph):
+    return partial(forced_pendulum.rhs, m=p["m"], l=p["l"], k=p["k"], g=p["g"])
+
+
 def _lorenz(p, graph):
     return partial(lorenz_rhs, sigma=p["sigma"], rho=p["rho"], beta=p["beta"], H=np.asarray(p["H"]))
 
@@ -217,6 +221,12 @@ SYSTEMS = {
         System("spring_pendulums", 2, dict(m=1.0, l=1.5, k=2.0, g=9.81),
                low=(-np.pi / 4, -0.5), high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_spring_pendulums,
                guard=pendulum_guard, state_names=("angle (rad)", "angular velocity (rad/s)"),
+               time_scale=lambda p: 2 * np.pi * np.sqrt(abs(p["l"] / p["g"])) if p["g"] else np.inf),
+        # rhs: f(t, y, u) with the horizontal forces u (2,) on the bobs, held (see forced_pendulum.py)
+        System(forced_pendulum.SYSTEM, 2, dict(forced_pendulum.PARAMS), low=(-np.pi / 4, -0.5),
+               high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_forced_pendulum, guard=pendulum_guard, n_nodes=2,
+               complete=True, generator=forced_pendulum.generate,
+               state_names=("angle (rad)", "angular velocity (rad/s)"),
                time_scale=lambda p: 2 * np.pi * np.sqrt(abs(p["l"] / p["g"])) if p["g"] else np.inf),
         System("lorenz", 3, dict(sigma=10.0, rho=28.0, beta=8.0 / 3.0, coupling=0.01),
                low=(-1.0,) * 3, high=(1.0,) * 3,
@@ -247,7 +257,8 @@ def get_system(name, source="system", field="system"):
 
 
 def make_rhs(system, params, graph):
-    """f(t, y) for one trajectory of ``system`` on ``graph``; for the controlled quadrotor_load,
+    """f(t, y) for one trajectory of ``system`` on ``graph``; for coupled_pendulum_force f(t, y, u) with its
+    forces u (2,) held; for the controlled quadrotor_load,
     f(t, y, F) with the thrusts F (n, 4) held over the step (its state includes the load).
 
     params : mapping holding at least the system's scalar parameters and drawn arrays

@@ -3,7 +3,7 @@
 Importing this package is cheap: it loads numpy only.  h5py, scipy, click and the
 numba kernels are imported (and compiled, or loaded from cache) on first use.  The
 packages, one layer each (docs/architecture.md): base, engine, data, model, evaluation,
-training, runs, and plot.
+training, runs, plot, control and export.
 """
 __version__ = "0.1.0"
 

@@ -20,6 +20,8 @@ LAYERS = {
     "training": {"evaluation", "model", "data", "engine", "base"},
     "runs": {"training", "evaluation", "model", "data", "engine", "base"},
     "plot": {"training", "evaluation", "base"},
+    "control": {"model", "engine", "base"},
+    "export": {"model", "data", "engine", "base"},
 }
 
 

@@ -378,9 +378,10 @@ def test_locality_order_is_invisible_to_users():
     np.testing.assert_allclose(x, rollout_ref(spec, theta, x0, graph, u, T), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(x, x_, rtol=1e-13, atol=1e-13)
     gx = np.random.default_rng(22).standard_normal(x.shape)
-    (gtheta, gx0), (gtheta_, gx0_) = vjp(gx), vjp_(gx)
+    (gtheta, gx0, gu), (gtheta_, gx0_, gu_) = vjp(gx, controls=True), vjp_(gx, controls=True)
     np.testing.assert_allclose(gtheta, gtheta_, rtol=1e-12, atol=1e-12 * np.abs(gtheta_).max())
     np.testing.assert_allclose(gx0, gx0_, rtol=1e-12, atol=1e-12 * np.abs(gx0_).max())
+    np.testing.assert_allclose(gu, gu_, rtol=1e-12, atol=1e-12 * np.abs(gu_).max())
 
 
 def test_locality_order_only_where_it_brings_neighbours_together():

@@ -50,6 +50,32 @@ def test_a_rollout_at_each_trajectorys_own_times_matches_the_numpy_reference(dri
     np.testing.assert_array_equal(got[-2:, -6:], np.broadcast_to(got[-3, -6:], (2, 6, spec.state_dim)))  # ended
 
 
+@pytest.mark.parametrize("kind", ["mpnode", "l2s", "node"])
+def test_the_controls_gradient_at_each_trajectorys_own_times_is_exact(driver, kind):
+    """vjp(gx, controls=True) through irregular intervals (a gap of several RK4 steps, a
+    trajectory that has ended: its controls after the end get no gradient) against central
+    finite differences in float64."""
+    rng = np.random.default_rng(4)
+    batch = block_diagonal([Graph.from_edges(3, RING)] * 2)
+    kw = dict(kind=kind, message_dim=2 if kind == "mpnode" else 0, control_dim=2, substeps=2)
+    spec = spec_(**kw, n_nodes=3) if kind == "node" else spec_(**kw)
+    T = 5
+    theta, x0, u = problem(spec, batch, T, seed=6)
+    iv = jittered_intervals(rng, T, 2, 3, spec.dt)
+    x, vjp = engine.forward_with_vjp(spec, theta, x0, batch, u, T, intervals=iv)
+    g = rng.standard_normal(x.shape)
+    gu = vjp(g, controls=True)[2]
+    assert not np.any(gu[T - 2:, 3:])  # the second trajectory ended: its last controls do nothing
+    eps = 1e-5
+    for _ in range(3):
+        d = rng.standard_normal(u.shape)
+        d /= np.linalg.norm(d)
+        plus = np.sum(g * engine.forward(spec, theta, x0, batch, u + eps * d, T, intervals=iv))
+        minus = np.sum(g * engine.forward(spec, theta, x0, batch, u - eps * d, T, intervals=iv))
+        fd = (plus - minus) / (2 * eps)
+        assert abs(fd - np.sum(gu * d)) < 1e-6 * abs(fd), (fd, np.sum(gu * d))
+
+
 def test_intervals_of_one_dt_are_the_regular_rollout_bit_for_bit():
     rng = np.random.default_rng(1)
     g = make_graph(rng, 7)

@@ -3,9 +3,9 @@ float64, on both drivers.
 
 - rollouts against the NumPy reference of engine_helpers (written from the model format);
 - the rollout's vector-Jacobian product with an *arbitrary* cotangent (the engine's one
-  reverse entry point) against central finite differences of <g, rollout(theta, x0)>,
-  for the parameters (every parameter array, psi included) and the initial state,
-  on graphs with an isolated node and directed edges.
+  reverse entry point) against central finite differences of <g, rollout(theta, x0, u)>,
+  for the parameters (every parameter array, psi included), the initial state and the
+  controls, on graphs with an isolated node and directed edges.
 """
 import dataclasses
 
@@ -103,25 +103,35 @@ def check_vjp(spec, graph, T, seed, n_dirs=2):
     x, vjp = engine.forward_with_vjp(spec, theta, x0, graph, u, T)
     np.testing.assert_allclose(x, rollout_ref(spec, theta, x0, graph, u, T), rtol=1e-12, atol=1e-12)
     g = rng.standard_normal(x.shape)
-    gtheta, gx0 = vjp(g)
-    assert gtheta.shape == theta.shape and gx0.shape == x0.shape
+    gtheta, gx0, gu = vjp(g, controls=True)
+    assert gtheta.shape == theta.shape and gx0.shape == x0.shape and gu.shape == u.shape
+    same = vjp(g)  # without the controls: the same gradients, bit for bit
+    assert np.array_equal(same[0], gtheta) and np.array_equal(same[1], gx0)
 
-    def L(th, x0_):
-        return float(np.sum(g * engine.forward(spec, th, x0_, graph, u, T)))
+    def L(th, x0_, u_=u):
+        return float(np.sum(g * engine.forward(spec, th, x0_, graph, u_, T)))
 
     # <g, rollout> is smooth: step 1e-4 along unit directions leaves truncation ~1e-8 relative
     eps = 1e-4
     for _ in range(n_dirs):
-        for which in ("theta", "x0"):
-            d = rng.standard_normal(theta.size if which == "theta" else x0.shape)
+        for which, grad in (("theta", gtheta), ("x0", gx0), ("u", gu)):
+            d = rng.standard_normal(grad.shape)
             d /= np.linalg.norm(d)
-            if which == "theta":
-                fd = (L(theta + eps * d, x0) - L(theta - eps * d, x0)) / (2 * eps)
-                got = gtheta @ d
-            else:
-                fd = (L(theta, x0 + eps * d) - L(theta, x0 - eps * d)) / (2 * eps)
-                got = np.sum(gx0 * d)
+            step = {which: eps * d}
+            plus = L(theta + step.get("theta", 0), x0 + step.get("x0", 0), u + step.get("u", 0))
+            minus = L(theta - step.get("theta", 0), x0 - step.get("x0", 0), u - step.get("u", 0))
+            fd = (plus - minus) / (2 * eps)
+            got = np.sum(grad * d)
             assert abs(fd - got) < 1e-6 * abs(fd), (which, fd, got)
+    # the controls of the last step and of the first, one entry each: u is held over a step,
+    # its cotangent sums the four stages and every substep
+    eps = 1e-5
+    for t in (0, T - 1):
+        i = np.unravel_index(int(np.argmax(np.abs(gu[t]))), gu[t].shape)
+        e = np.zeros_like(u)
+        e[(t,) + i] = eps
+        fd = (L(theta, x0, u + e) - L(theta, x0, u - e)) / (2 * eps)
+        assert abs(fd - gu[(t,) + i]) < 1e-6 * abs(fd), (t, i, fd, gu[(t,) + i])
     # every parameter array on its own: its largest gradient entry
     eps = 1e-5
     offsets = np.cumsum([0] + [int(np.prod(s)) for s in layouts.param_shapes(spec).values()])

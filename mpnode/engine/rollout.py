@@ -1,12 +1,13 @@
 """The engine: RK4 rollouts of a field over a flat (block-diagonal) graph, and their exact VJP.
 
-`forward` integrates; `forward_with_vjp` also returns the vector-Jacobian product of
+`forward` integrates (`integrate` from a full state); `forward_with_vjp` (and
+`integrate_with_vjp`) also returns the vector-Jacobian product of
 the rollout, the *discrete adjoint*: for any cotangent gx of the output states it gives
-the exact gradient, with respect to the parameters and the initial state, of
-<gx, rollout> as computed (not of the ODE it approximates).  Losses, windows, multiple
-shooting are the caller's business (`mpnode.training.losses`).  Outputs fall every dt, or at each
-trajectory's own times (``intervals``, see `mpnode.engine.schedule`).  Cost: memory for one state
-per RK4 step (sum of the steps + 1 arrays of (M, dz)); time a few rollouts' worth (forward, recomputed
+the exact gradient, with respect to the parameters, the initial state and (on request)
+the controls, of <gx, rollout> as computed (not of the ODE it approximates).  Losses, windows,
+multiple shooting are the caller's business (`mpnode.training.losses`).  Outputs fall every dt, or
+at each trajectory's own times (``intervals``, see `mpnode.engine.schedule`).  Cost: memory for one
+state per RK4 step (sum of the steps + 1 arrays of (M, dz)); time a few rollouts' worth (forward, recomputed
 stages, and a VJP that costs about twice a forward; docs/evidence/speed.md).  Stage values are recomputed rather
 than stored, so memory does not grow with the hidden width.
 
@@ -139,51 +140,68 @@ def forward_with_vjp(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", k
 
     Returns (x, vjp): x as `forward`; ``vjp(gx)`` takes the cotangent of every output
     state, gx : ndarray, shape (n_steps+1, M, dx), and returns (gtheta like theta,
-    gx0 of shape (M, dx)): the gradient of sum(gx * x) with respect to theta and x0.
+    gx0 of shape (M, dx)): the gradient of sum(gx * x) with respect to theta and x0;
+    ``vjp(gx, controls=True)`` returns (gtheta, gx0, gu) with gu (n_steps, M, du) the
+    gradient with respect to u (model predictive control; training does not ask for it).
     vjp may be called several times; it keeps one state per RK4 step alive
     (``keep_states=False``: no vjp, the rollout alone).  Compiled kernels only (numba):
     the NumPy path rolls out but does not train.
     """
+    z0 = initial_state(spec, x0, np.asarray(theta).dtype)
+    return integrate_with_vjp(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, intervals)
+
+
+def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto", keep_states=True,
+                       ordering="auto", intervals=None):
+    """`forward_with_vjp` from a full state z0 = [x, m] (M, dx + dm), as `integrate`.
+
+    gx0 is then the gradient with respect to z0's x columns, its messages held at their
+    values (a step's Jacobian as `mpnode.Simulator.jacobians` defines it).
+    """
     resolve_backend("numba", purpose="computing gradients (training)")
-    shape = (n_steps + 1,) + np.shape(x0)
+    z0 = np.asarray(z0)
+    shape = (n_steps + 1, z0.shape[0], spec.state_dim)
+    u_shape = (n_steps, z0.shape[0], spec.control_dim)
     if spec.kind == "node":
         intervals = _per_system(spec, intervals)
-        spec, x0, u, graph = _whole_systems(spec, x0, u, graph)
-    z0 = initial_state(spec, x0, np.asarray(theta).dtype)
+        spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
     x, states, _, u, grid, plan = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, intervals)
     x = x.reshape(shape)
     if not keep_states:
         return x, None
     theta = np.ascontiguousarray(theta)
 
-    def vjp(gx):
+    def vjp(gx, controls=False):
         if np.shape(gx) != shape:
             raise ValueError(f"the cotangent has shape {np.shape(gx)}, the rollout {shape}")
-        gtheta, gx0 = _reverse(spec, theta, plan, u, grid, states, gx)
-        return gtheta, gx0.reshape(shape[1:])
+        gtheta, gx0, gu = _reverse(spec, theta, plan, u, grid, states, gx, controls)
+        return (gtheta, gx0.reshape(shape[1:])) + ((gu.reshape(u_shape),) if controls else ())
 
     return x, vjp
 
 
-def _reverse(spec, theta, plan, u, grid, states, gx):
-    """The kernels' reverse pass for the cotangent ``gx`` of every output: (gtheta, gx0 (M, dx))."""
+def _reverse(spec, theta, plan, u, grid, states, gx, controls=False):
+    """The kernels' reverse pass for the cotangent ``gx`` of every output: (gtheta, gx0 (M, dx),
+    gu (T, M, du) or None) in the user's node order."""
     from . import kernels
 
-    m = states.shape[1]
+    n_steps, m = u.shape[0], states.shape[1]
     gx = np.asarray(gx, dtype=theta.dtype).reshape(-1, m, spec.state_dim)
     gx = np.ascontiguousarray(plan.to_kernel_order(gx, axis=1))
     tgraph = plan.transposed
     n_parts = len(plan.blocks) - 1 if plan.blocks is not None else -(-m // kernels.STAGE_TILE)
     gthetas = np.empty((n_parts, theta.size), dtype=theta.dtype)
     gx0 = np.empty((m, spec.state_dim), dtype=theta.dtype)
+    gu = np.zeros((n_steps, m if controls else 0, spec.control_dim), dtype=theta.dtype)
     g, gt = (plan.csr.indptr, plan.csr.indices, plan.weight), (tgraph.indptr, tgraph.indices)
     nsub, hstep = grid
     with single_threaded_blas():
         if plan.blocks is None:
-            kernels.vjp_stagewise(theta, spec.dims, u, g, gt, nsub, hstep, states, gx, gthetas, gx0)
+            kernels.vjp_stagewise(theta, spec.dims, u, g, gt, nsub, hstep, states, gx, gthetas, gx0, gu)
         else:
             kernels.vjp_blocks(theta, spec.dims, u, g, gt, plan.blocks, plan.dense_n, plan.dense_off,
-                               plan.dense_A, plan.dense_AT, nsub, hstep, states, gx, gthetas, gx0)
+                               plan.dense_A, plan.dense_AT, nsub, hstep, states, gx, gthetas, gx0, gu)
     if plan.order is not None:
         gx0[plan.order] = gx0.copy()
-    return gthetas.sum(axis=0, dtype=theta.dtype), gx0
+        gu = plan.to_user_order(gu)
+    return gthetas.sum(axis=0, dtype=theta.dtype), gx0, gu if controls else None

@@ -99,21 +99,41 @@ class Simulator:
         if self._zs is None:
             raise RuntimeError("call reset(x0) before step()")
         m, spec = self.model, self.model.spec
-        if u is None and spec.control_dim:
-            raise InputError("Simulator.step", "u", f"is None, but the model takes controls (du = {spec.control_dim})",
-                             f"controls of shape {self._shape[:2] + (spec.control_dim,)}")
-        if u is not None:
-            u = np.asarray(u)
-            want = self._shape[:2] + (spec.control_dim,)
-            if u.shape != want or u.dtype.kind not in "iuf" or not np.all(np.isfinite(u)):
-                raise InputError("Simulator.step", "u", f"has shape {u.shape} and dtype {u.dtype}",
-                                 f"finite numbers of shape {want}")
-            u = m.normalize_u(u).reshape(1, -1, spec.control_dim)
+        u = self._controls(u, "Simulator.step")
+        u = None if u is None else u[None]
         self._zs = [engine.integrate(spec, one.theta, z, self._flat, u, 1, backend=self.backend)[1]
                     for one, z in zip(self._models, self._zs)]
         self.steps += 1
         self._watch(self._zs[0], None if u is None else u[0], self.steps)
         return self.state
+
+    def jacobians(self, u=None, sparse=False):
+        """The derivatives of the state after the next step, (Jx, Ju): with respect to the
+        current state (messages held at their current values) and to the controls u (B, N, du)
+        held over the step (None for a model without controls), as `step` takes them.
+
+        In the data's units and the model's dtype, node-major: Jx (B, N*dx, N*dx), Ju
+        (B, N*dx, N*du); with ``sparse`` two lists of B scipy CSR arrays, whose pattern
+        follows the graph (a node's next state hears nodes a few hops away within one step:
+        `mpnode.engine.jacobians`), for large N.  Exact (the step's own discrete adjoint); it
+        does not advance the simulator.  Needs numba.
+        """
+        from mpnode.engine.jacobians import step_jacobians
+
+        self._require_reset()
+        m, spec = self.model, self.model.spec
+        if len(self._models) > 1:
+            raise InputError("Simulator.jacobians", "model", f"is an ensemble of {len(self._models)} members",
+                             "one model (an ensemble's members each have their own state: e.g. "
+                             "Simulator(ensemble.members[0], graph))")
+        un = self._controls(u, "Simulator.jacobians")
+        jx, ju = step_jacobians(spec, m.theta, self._zs[0], self.graph, un, sparse)
+        n = self.graph.n_nodes
+        sx = np.tile(m.x_std, n)  # node-major scales: d x / d xn = std
+        su = np.tile(m.u_std, n)
+        if sparse:
+            return ([_scaled(j, sx, 1 / sx, m.dtype) for j in jx], [_scaled(j, sx, 1 / su, m.dtype) for j in ju])
+        return (jx * (sx[:, None] * (1 / sx))).astype(m.dtype), (ju * (sx[:, None] * (1 / su))).astype(m.dtype)
 
     @property
     def off_range(self):
@@ -155,6 +175,21 @@ class Simulator:
         out = [z[:, spec.state_dim:].reshape(self._shape[:2] + (spec.message_dim,)).copy() for z in self._zs]
         return out[0] if len(out) == 1 else np.stack(out)
 
+    def _controls(self, u, where):
+        """u (B, N, du) in data units as the engine takes it: normalised, flat (B*N, du); None
+        for a model without controls.  InputError naming ``where`` otherwise."""
+        spec = self.model.spec
+        want = self._shape[:2] + (spec.control_dim,)
+        if u is None:
+            if spec.control_dim:
+                raise InputError(where, "u", f"is None, but the model takes controls (du = {spec.control_dim})",
+                                 f"controls of shape {want}")
+            return None
+        u = np.asarray(u)
+        if u.shape != want or u.dtype.kind not in "iuf" or not np.all(np.isfinite(u)):
+            raise InputError(where, "u", f"has shape {u.shape} and dtype {u.dtype}", f"finite numbers of shape {want}")
+        return self.model.normalize_u(u).reshape(-1, spec.control_dim)
+
     def _require_reset(self):
         if self._zs is None:
             raise RuntimeError("call reset(x0) first")
@@ -167,3 +202,10 @@ def _as_graph(graph):
     if is_networkx(graph):
         return as_graph(graph, graph.number_of_nodes(), directed=graph.is_directed())
     raise InputError("graph", "graph", f"is a {type(graph).__name__}", "an mpnode.Graph or a networkx graph")
+
+
+def _scaled(j, rows, cols, dtype):
+    """diag(rows) @ j @ diag(cols) for a scipy CSR array, in ``dtype``."""
+    out = j.copy()
+    out.data = (out.data * (rows[np.repeat(np.arange(j.shape[0]), np.diff(j.indptr))] * cols[j.indices])).astype(dtype)
+    return out

@@ -129,8 +129,9 @@ def update_vjp_tile(theta, dims, GK, graph, i0, i1, zoff, H0, A, T, gtheta, gagg
 
 
 @njit(**JIT)
-def send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, V, H0, S, gtheta, gin):
-    """VJP of send_tile: gS (cotangent of s, rows ``i - zoff``) and gh0 -> gin[:, :dx]."""
+def send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, V, H0, S, gtheta, gin, gu):
+    """VJP of send_tile: gS (cotangent of s, rows ``i - zoff``) and gh0 -> gin[:, :dx], and
+    added into gu (rows ``i``, as u) unless gu is empty."""
     dx, du, H = dims[DX], dims[DU], dims[HIDDEN]
     W_lift, _, W_msg, _, _, _, _, _, _ = unpack(theta, dx + du, H, dx)
     gW_lift, gb_lift, gW_msg, gb_msg, _, _, _, _, _ = unpack(gtheta, dx + du, H, dx)
@@ -150,3 +151,7 @@ def send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, V, H0, S, gtheta, gin):
         zi = i0 + r - zoff
         for d in range(dx):
             gin[zi, d] = GV[r, d]
+    if gu.shape[0] > 0:
+        for r in range(n):
+            for d in range(du):
+                gu[i0 + r, d] += GV[r, dx + d]

@@ -136,12 +136,13 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
 
 
 @njit(**JIT)
-def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gin, gagg):
+def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gin, gagg, gu):
     """VJP of update_tile for the cotangent GK of k (overwritten).
 
     Writes the x part of the input's cotangent into gin[:, :dx] and each node's weighted
     aggregate cotangent into gagg (rows ``i - zoff``), which the transpose of the neighbour
-    sum turns into the senders' message cotangents; adds into gtheta.
+    sum turns into the senders' message cotangents; adds into gtheta, and the controls'
+    cotangent into gu (rows ``i``, as u) unless gu is empty (training does not ask for it).
     """
     dx, du, dm, H = dims[DX], dims[DU], dims[DM], dims[HIDDEN]
     zero_msg, linear_agg = dims[ZERO_MSG], dims[LINEAR]
@@ -160,6 +161,9 @@ def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gi
         zi = i - zoff
         for d in range(dx):
             gin[zi, d] = GV[r, d]
+        if gu.shape[0] > 0:
+            for d in range(du):
+                gu[i, d] += GV[r, dx + d]
         w = weight.dtype.type(0) if zero_msg else weight[i]
         for d in range(dm):
             gagg[zi, d] = GV[r, c + d] * w

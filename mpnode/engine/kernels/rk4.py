@@ -27,9 +27,10 @@ The forward drivers start from a full state z0 (M, dz) and return the final one 
 after every RK4 step when given a ``states`` array (sum(nsub)+1, M, dz); the reverse
 drivers take the cotangent of every output state, GX (T+1, M, dx), recompute each step's
 stages from the kept state and return the parameter cotangent (one buffer per block or
-tile, reduced by the caller: deterministic, no races) and the initial state's.  ``dims``:
-the model's integers (slots in mpnode.engine.dims); ``graph`` = (indptr, indices, weight),
-``tgraph`` = (tindptr, tindices) its transpose.
+tile, reduced by the caller: deterministic, no races), the initial state's and, when the
+caller gives GU (T, M, du) rows, the controls' (each node's rows are its own: no races
+either).  ``dims``: the model's integers (slots in mpnode.engine.dims); ``graph`` =
+(indptr, indices, weight), ``tgraph`` = (tindptr, tindices) its transpose.
 """
 import numpy as np
 from numba import njit, prange
@@ -200,31 +201,34 @@ def k_cotangent(stage, h, a, gnext, i0, i1, zoff):
 
 
 @njit(**JIT)
-def update_vjp_tile(stage, h, theta, dims, a, gnext, graph, i0, i1, zoff, C, slot, r0, r1, gtheta, gin, gagg, gh0):
-    """Reverse phase 3 for nodes i0..i1: the field's VJP up to each node's aggregate (gagg)."""
+def update_vjp_tile(stage, h, theta, dims, a, gnext, graph, i0, i1, zoff, C, slot, r0, r1, gtheta, gin, gagg, gh0,
+                    gu):
+    """Reverse phase 3 for nodes i0..i1: the field's VJP up to each node's aggregate (gagg);
+    the controls' cotangent added into gu (rows ``i``) unless it is empty."""
     GK = k_cotangent(stage, h, a, gnext, i0, i1, zoff)
     if dims[KIND] == L2S:
         l2s_field.update_vjp_tile(theta, dims, GK, graph, i0, i1, zoff, C[1][slot, r0:r1], C[3][slot, r0:r1],
                                   C[4][slot, r0:r1], gtheta, gagg, gh0)
     else:
         mpnode_field.update_vjp_tile(theta, dims, GK, graph[2], i0, i1, zoff, C[0][slot, r0:r1],
-                                     C[1][slot, r0:r1], C[2][slot, r0:r1], gtheta, gin, gagg)
+                                     C[1][slot, r0:r1], C[2][slot, r0:r1], gtheta, gin, gagg, gu)
 
 
 @njit(**JIT)
-def send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C, slot, r0, r1, gtheta, gin):
-    """Reverse phase 1 (L2S): the senders' cotangent gS through the send layers into gin."""
+def send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C, slot, r0, r1, gtheta, gin, gu):
+    """Reverse phase 1 (L2S): the senders' cotangent gS through the send layers into gin (and gu)."""
     if dims[KIND] == L2S:
         l2s_field.send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C[0][slot, r0:r1], C[1][slot, r0:r1],
-                                C[2][slot, r0:r1], gtheta, gin)
+                                C[2][slot, r0:r1], gtheta, gin, gu)
 
 
 @njit(**JIT)
-def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff, A, AT, sums, work, gtheta):
+def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff, A, AT, sums, work, gtheta, gu):
     """Reverse one RK4 step of the closed range lo..hi: returns the cotangent of its start state.
 
     zstart: the state at the step's start; a: the cotangent of the state at its end.  The
-    four stages are recomputed (caches in ``work``), then walked backwards.
+    four stages are recomputed (caches in ``work``), then walked backwards.  u is held over
+    the step, so its cotangent (added into gu unless empty) sums over the four stages.
     """
     z, za, zb, acc, C, gagg, gS, gh0 = work
     kind, dx, self_msg = dims[KIND], dims[DX], dims[SELF_MSG]
@@ -238,7 +242,7 @@ def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff,
         for i0 in range(lo, hi, TILE):
             i1 = min(hi, i0 + TILE)
             update_vjp_tile(stage, h, theta, dims, a, gnext, graph, i0, i1, zoff, C, stage, i0 - zoff, i1 - zoff,
-                            gtheta, gin, gagg, gh0)
+                            gtheta, gin, gagg, gh0, gu)
         if kind != L2S:
             target = gin
         if AT.shape[0] > 0:
@@ -248,7 +252,7 @@ def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff,
                 transpose_tile(gagg, tgraph[0], tgraph[1], self_msg, i0, min(hi, i0 + TILE), zoff, target, tcol)
         for i0 in range(lo, hi, TILE):
             i1 = min(hi, i0 + TILE)
-            send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C, stage, i0 - zoff, i1 - zoff, gtheta, gin)
+            send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C, stage, i0 - zoff, i1 - zoff, gtheta, gin, gu)
         gz += gin
         gnext, gin = gin, gnext
     return gz
@@ -298,9 +302,10 @@ def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, den
 
 @njit(parallel=True, **JIT)
 def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, dense_A, dense_AT, nsub, hstep, states,
-               GX, gthetas, gx0):
+               GX, gthetas, gx0, GU):
     """Reverse pass: cotangents GX (T+1, M, dx) of the output states -> gthetas[b] (block b's
-    parameter cotangent) and gx0 (M, dx).  ``states`` from rollout_blocks."""
+    parameter cotangent) and gx0 (M, dx); the controls' cotangent added into GU (T, M, du)
+    unless GU has no rows (T, 0, du).  ``states`` from rollout_blocks."""
     dx = dims[DX]
     T = GX.shape[0] - 1
     sw = sent_width(dims)
@@ -324,7 +329,7 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
             for s in range(nsub[t] - 1, -1, -1):
                 k -= 1
                 gz = substep_vjp_range(hstep[t], theta, dims, states[k, lo:hi], gz, U[t], graph, tgraph, lo, hi, lo, A,
-                                       AT, sums, work, gtheta)
+                                       AT, sums, work, gtheta, GU[t])
         gx0[lo:hi] = gz[:, :dx] + GX[0, lo:hi]
 
 
@@ -419,7 +424,7 @@ def _add_rows(acc, G):
 
 
 @njit(parallel=True, **JIT)
-def vjp_stagewise(theta, dims, U, graph, tgraph, nsub, hstep, states, GX, gthetas, gx0):
+def vjp_stagewise(theta, dims, U, graph, tgraph, nsub, hstep, states, GX, gthetas, gx0, GU):
     """As vjp_blocks for one large graph; gthetas (ntiles, P) holds one partial sum per tile."""
     T1, M, dx = GX.shape
     T = T1 - 1
@@ -450,13 +455,13 @@ def vjp_stagewise(theta, dims, U, graph, tgraph, nsub, hstep, states, GX, gtheta
                     i0 = k * STAGE_TILE
                     i1 = min(M, i0 + STAGE_TILE)
                     update_vjp_tile(stage, h, theta, dims, gz, gnext, graph, i0, i1, 0, C, stage, i0, i1,
-                                    gthetas[k], gin, gagg, gh0)
+                                    gthetas[k], gin, gagg, gh0, GU[t])
                 for k in prange(ntiles):
                     i0 = k * STAGE_TILE
                     i1 = min(M, i0 + STAGE_TILE)
                     if kind == L2S:
                         transpose_tile(gagg, tgraph[0], tgraph[1], self_msg, i0, i1, 0, gS, 0)
-                        send_vjp_tile(theta, dims, gS, gh0, i0, i1, 0, C, stage, i0, i1, gthetas[k], gin)
+                        send_vjp_tile(theta, dims, gS, gh0, i0, i1, 0, C, stage, i0, i1, gthetas[k], gin, GU[t])
                     else:
                         transpose_tile(gagg, tgraph[0], tgraph[1], self_msg, i0, i1, 0, gin, dx)
                     gnew[i0:i1] += gin[i0:i1]

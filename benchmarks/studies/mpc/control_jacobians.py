@@ -1,0 +1,65 @@
+"""Does a learned quadrotor model know what the thrusts do?  Its step Jacobian with respect to the
+thrusts (`Simulator.jacobians`: exact, of the model) against the true one (the true equations by
+RK4 at dt / 10, one-sided differences), at states of a quad3 file, per block of the state.
+
+The model steps from the trajectory's start under the file's thrusts up to step t (so its
+messages are those it would have there), then takes the file's true state at t; printed: the
+relative error ||Ju_model - Ju_true|| / ||Ju_true|| of each block (positions, quaternions,
+velocities, body rates) at each of the states.
+
+    python benchmarks/studies/mpc/control_jacobians.py MODEL.h5 QUAD3.h5 [--states 3,20 10,5 50,35]
+"""
+import argparse
+
+import numpy as np
+
+from data_gen import quadrotor as quad
+from mpnode import Model, Simulator, read_trajectories
+from mpnode.base.graph import Graph
+
+BLOCKS = {"positions": [0, 1, 2], "quaternions": [3, 4, 5, 6], "velocities": [7, 8, 9], "body rates": [10, 11, 12]}
+
+
+def true_ju(x, load, F, eps=1e-6, substeps=10, dt=0.1):
+    """d(next quadrotor states)/d(thrusts) (3*13, 3*4) of the true equations, from the full state."""
+    p, n = quad.Physics(), F.size
+    Fs = np.repeat(F[..., None], n + 1, axis=-1)
+    Fs.reshape(n, n + 1)[:, 1:] += eps * np.eye(n)
+    Y = np.repeat(quad.pack(x, load)[:, None], n + 1, axis=1)
+    h = dt / substeps
+    for _ in range(substeps):
+        k1 = p.rhs(0, Y, Fs)
+        k2 = p.rhs(0, Y + h / 2 * k1, Fs)
+        k3 = p.rhs(0, Y + h / 2 * k2, Fs)
+        k4 = p.rhs(0, Y + h * k3, Fs)
+        Y = Y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    quads = Y[:13 * 3]
+    return (quads[:, 1:] - quads[:, :1]) / eps
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("model")
+    ap.add_argument("data")
+    ap.add_argument("--states", nargs="+", default=["3,20", "10,5", "50,35"], help="trajectory,step pairs")
+    a = ap.parse_args()
+    model, data = Model.load(a.model).copy(np.float64), read_trajectories(a.data)
+    errors = {name: [] for name in BLOCKS}
+    for pair in a.states:
+        b, t = map(int, pair.split(","))
+        sim = Simulator(model, Graph.complete(3))
+        sim.reset(data.x[b, :1])
+        for k in range(t):
+            sim.step(data.u[b, k][None])
+        sim._z[:, :13] = model.normalize_x(data.x[b, t]).reshape(-1, 13)  # the true state, the model's messages
+        ju = sim.jacobians(data.u[b, t][None])[1][0]
+        want = true_ju(data.x[b, t], data.aux["load"][b, t], data.u[b, t])
+        for name, dims in BLOCKS.items():
+            rows = [i * 13 + d for i in range(3) for d in dims]
+            errors[name].append(np.linalg.norm(ju[rows] - want[rows]) / np.linalg.norm(want[rows]))
+    for name, e in errors.items():
+        print(f"{name:12s} relative error of d(next state)/d(thrusts): " + ", ".join(f"{v:.2f}" for v in e))
+
+
+if __name__ == "__main__":
+    main()

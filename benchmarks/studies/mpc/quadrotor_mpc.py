@@ -1,0 +1,206 @@
+"""The quadrotor swarm carrying its load through a doorway, in closed loop on the reference
+simulator (the truth: data_gen's LSODA integration at 1e-9), under three controllers:
+
+- ``scene``: the scene's own cascaded controller (data_gen.quadrotor.Controller, nominal gains);
+- ``true``: shooting MPC through the true equations (the same right-hand side, integrated by RK4
+  at dt / 10, the load included), its gradient by one-sided finite differences of all controls
+  at once (one batched integration: every perturbed control sequence is a column);
+- ``learned``: shooting MPC through a learned model (mpnode.control.ShootingMPC: the engine's
+  exact gradient with respect to the thrusts), which sees the quadrotors only, never the load.
+
+Both MPCs minimise the same cost of the quadrotors' states over H steps: distance to the
+reference formation (positions, velocities, the attitude of the nominal thrust, no body rates)
+and thrusts away from the nominal ones.  The paths are new: start and goal drawn as the scene
+draws them but from other seeds, and the doorway moved (sideways by up to 0.4 m, up by up to
+0.3 m), where the training data's doorway never moves.  Reported per controller: the load's
+tracking error (its distance to the reference path, mean and max over the run) and the wall
+time per control step.  No thrust noise, nominal gains.
+
+    python benchmarks/studies/mpc/quadrotor_mpc.py MODEL.h5 [--paths 20] [--horizon 10] [--out DIR]
+"""
+import argparse
+import json
+import math
+import os
+import time
+
+import numpy as np
+
+from data_gen import quadrotor as quad
+from mpnode import Model
+from mpnode.base.graph import Graph
+from mpnode.control import ShootingMPC, optimise_controls, tracking_cost
+
+N, DT, STEPS = 3, 0.1, 50
+#: cost weights per state dimension: position, quaternion, velocity, body rates; per thrust
+Q = np.array([10.0] * 3 + [1.0] * 4 + [1.0] * 3 + [0.0] * 3)
+R = np.full(4, 0.5)
+
+
+def new_path(seed):
+    """start, goal, doorway of one path the training data never flew."""
+    rng = np.random.default_rng(np.random.SeedSequence(seed))
+    start, goal, _ = quad.draw_scenario(rng, quad.CONTROL)
+    door = np.asarray(quad.CONTROL["doorway"]) + [0.0, rng.uniform(-0.4, 0.4), rng.uniform(0.0, 0.3)]
+    return start, goal, door
+
+
+def references(ref, physics, t, horizon):
+    """The formation's states (horizon+1, N, 13) at t, t+dt, ... and the nominal thrusts (horizon, N, 4)."""
+    x = np.zeros((horizon + 1, N, 13))
+    f = np.zeros((horizon, N, 4))
+    for k in range(horizon + 1):
+        r, v, a, u, s = ref.quads(t + k * DT)
+        force = physics.m_q * (a - physics.g) + s[:, None] * u
+        x[k, :, 0:3], x[k, :, 7:10] = r, v
+        x[k, :, 3:7] = [quad.attitude_for_thrust(fi) for fi in force]
+        if k < horizon:
+            f[k] = np.linalg.norm(force, axis=1)[:, None] / 4
+    return x, f
+
+
+class TruePredictor:
+    """Predictions of the true equations by RK4 at DT / substeps from the full state y (with the
+    load), and their gradient by one-sided differences, every perturbation a column of one run."""
+
+    def __init__(self, physics, substeps=10, eps=1e-6):
+        self.p, self.substeps, self.eps = physics, substeps, eps
+
+    def rollout(self, y, F):
+        """States (H+1, 13 N + 6, k) from y under thrusts F (H, N, 4, k), held per step."""
+        h = DT / self.substeps
+        Y = np.repeat(y[:, None], F.shape[-1], axis=1)
+        out = [Y]
+        for t in range(F.shape[0]):
+            for _ in range(self.substeps):
+                k1 = self.p.rhs(0, Y, F[t])
+                k2 = self.p.rhs(0, Y + h / 2 * k1, F[t])
+                k3 = self.p.rhs(0, Y + h / 2 * k2, F[t])
+                k4 = self.p.rhs(0, Y + h * k3, F[t])
+                Y = Y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            out.append(Y)
+        return np.stack(out)
+
+    def __call__(self, y, U):
+        """(X (1, H+1, N, 13), vjp) for U (1, H, N, 4)."""
+        n = U[0].size
+        F = np.repeat(U[0][..., None], n + 1, axis=-1)
+        F.reshape(n, n + 1)[:, 1:] += self.eps * np.eye(n)
+        Y = self.rollout(y, F)
+        quads = Y[:, :13 * N].reshape(len(Y), N, 13, n + 1)
+        X = quads[..., 0][None]
+
+        def vjp(dX):
+            diff = (quads[..., 1:] - quads[..., :1]) / self.eps  # (H+1, N, 13, n): d X / d U_j
+            return np.tensordot(dX[0], diff, axes=3).reshape(U.shape)
+
+        return X, vjp
+
+
+def scene_controller(ref, physics):
+    control = quad.Controller(N, ref, physics, quad.CONTROL, DT)
+    return lambda t, y: control(t, quad.unpack(y, N)[0])[0]
+
+
+def true_mpc(ref, physics, horizon, iterations):
+    predict, plan = TruePredictor(physics), None
+
+    def control(t, y):
+        nonlocal plan
+        x_ref, f_ref = references(ref, physics, t, horizon)
+        plan = f_ref[None] if plan is None else np.concatenate([plan[:, 1:], plan[:, -1:]], axis=1)
+        cost = tracking_cost(x_ref[None], Q, R, f_ref[None])
+        plan, _ = optimise_controls(lambda U: predict(y, U), cost, plan, (0.0, physics.F_max), iterations)
+        return plan[0, 0]
+
+    return control
+
+
+def learned_mpc(model, ref, physics, horizon, iterations, messages):
+    mpc = ShootingMPC(model, Graph.complete(N), horizon, bounds=(0.0, physics.F_max), iterations=iterations,
+                      messages=messages)
+    started = []
+
+    def control(t, y):
+        x = quad.unpack(y, N)[0]
+        x_ref, f_ref = references(ref, physics, t, horizon)
+        if not started:
+            mpc.reset(x[None], f_ref[0][None])
+            started.append(True)
+        return mpc.control(x[None], tracking_cost(x_ref[None], Q, R, f_ref[None]))[0]
+
+    return control
+
+
+def closed_loop(make_controller, path):
+    """Run one path on the truth: load error (STEPS+1,), seconds per control step, the load's path, failure."""
+    physics = quad.Physics()
+    start, goal, door = path
+    ref = quad.Reference(N, start, goal, physics, {**quad.CONTROL, "doorway": tuple(door)})
+    controller = make_controller(ref, physics)
+    x0, load0, _, _ = quad.static_equilibrium(N, start, physics)
+    y = quad.pack(x0, load0)
+    loads, seconds, failure = [y[13 * N:13 * N + 3]], [], None
+    for k in range(STEPS):
+        t0 = time.perf_counter()
+        F = np.clip(controller(k * DT, y), 0.0, physics.F_max)
+        seconds.append(time.perf_counter() - t0)
+        try:
+            y = quad.step(physics, y, F, k * DT, DT)
+        except Exception as e:  # the solver gives up: the swarm was lost
+            failure = f"step {k}: {e}"
+            break
+        loads.append(y[13 * N:13 * N + 3])
+        if np.max(quad.tilt(quad.unpack(y, N)[0][:, 3:7])) > math.radians(quad.CONTROL["fail_tilt_deg"]):
+            failure = f"step {k}: tilt beyond {quad.CONTROL['fail_tilt_deg']} deg"
+            break
+    loads = np.array(loads)
+    wanted = np.array([ref.load(k * DT)[0] for k in range(len(loads))])
+    return np.linalg.norm(loads - wanted, axis=1), seconds, loads, wanted, failure
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("model")
+    ap.add_argument("--paths", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=10_000, help="path p draws from SeedSequence(first_seed + p)")
+    ap.add_argument("--horizon", type=int, default=10)
+    ap.add_argument("--iterations", type=int, default=30, help="L-BFGS-B iterations per control step")
+    ap.add_argument("--controllers", default="scene,true,learned")
+    ap.add_argument("--messages", default="carry", choices=("carry", "zero"),
+                    help="the learned model's messages at the start of each plan (ShootingMPC)")
+    ap.add_argument("--out", default=os.path.dirname(os.path.abspath(__file__)))
+    a = ap.parse_args()
+    model = Model.load(a.model)
+    makers = {"scene": scene_controller,
+              "true": lambda ref, p: true_mpc(ref, p, a.horizon, a.iterations),
+              "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages)}
+    results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations,
+               "messages": a.messages, "paths": []}
+    for p in range(a.paths):
+        path = new_path(a.first_seed + p)
+        row = {"seed": a.first_seed + p, "start": path[0].tolist(), "goal": path[1].tolist(), "door": path[2].tolist()}
+        for name in a.controllers.split(","):
+            err, secs, loads, wanted, failure = closed_loop(makers[name], path)
+            row[name] = dict(mean_error=float(err.mean()), max_error=float(err.max()), failure=failure,
+                             ms_per_step=1e3 * float(np.mean(secs)), ms_p95=1e3 * float(np.percentile(secs, 95)),
+                             load=np.round(loads, 6).tolist(), reference=np.round(wanted, 6).tolist())
+            print(f"path {p} {name:8s} load error mean {err.mean():.3f} m max {err.max():.3f} m, "
+                  f"{1e3 * np.mean(secs):.1f} ms/step" + (f"  FAILED {failure}" if failure else ""), flush=True)
+        results["paths"].append(row)
+    with open(os.path.join(a.out, "quadrotor_results.json"), "w") as f:
+        json.dump(results, f)
+    summarise(results, a.controllers.split(","))
+
+
+def summarise(results, names):
+    for name in names:
+        rows = [r[name] for r in results["paths"]]
+        print(f"{name:8s} mean load error {np.mean([r['mean_error'] for r in rows]):.3f} m, "
+              f"max {np.max([r['max_error'] for r in rows]):.3f} m, "
+              f"{np.mean([r['ms_per_step'] for r in rows]):.1f} ms per control step, "
+              f"{sum(r['failure'] is not None for r in rows)} failed")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,189 @@
+"""`mpnode export`: the ONNX rollout equals mpnode.Simulator to 1e-5 (onnxruntime, every kind, both
+dtypes, with and without controls), the NumPy module equals Model.rollout to 1e-6 and runs with
+numpy alone; the command's help says what is and is not exported, and its errors exit 2 with
+nothing written (onnx missing included)."""
+import importlib.util
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from engine_helpers import make_graph, random_theta, spec_
+
+from cli.main import main
+from mpnode import Model, Simulator, write_trajectories
+from mpnode.data import Trajectories
+from mpnode.export import write_numpy_module
+
+N, DX, DU, B, T = 7, 2, 2, 3, 4
+
+KINDS = {
+    "mpnode": dict(message_dim=3),
+    "mpnode-sum-self": dict(message_dim=2, aggregation="sum", self_messages=True),
+    "mpnode-linear-scaled-state": dict(message_dim=3, linear_aggregate=True, linear_aggregation="scaled",
+                                       mean_degree=2.0, linear_target="state"),
+    "mpnode-zero-messages": dict(message_dim=2, zero_messages=True),
+    "l2s": dict(kind="l2s", aggregation="sum"),
+    "l2s-mean-self": dict(kind="l2s", aggregation="mean", self_messages=True),
+    "node": dict(kind="node", n_nodes=N),
+    "mpnode-encoder": dict(message_dim=3, encoder_window=3),  # format 4: the encoder is not exported
+}
+
+
+def make_model(name, du, dtype, seed=0):
+    """Random weights (W_agg too) and normalisation constants that are not 0/1, two substeps."""
+    rng = np.random.default_rng(seed)
+    spec = spec_(state_dim=DX, control_dim=du, hidden=8, dt=0.1, substeps=2, **{"message_dim": 0, **KINDS[name]})
+    return Model(random_theta(rng, spec, dtype=dtype), spec, x_mean=rng.standard_normal(DX),
+                 x_std=1 + rng.random(DX), u_mean=rng.standard_normal(du), u_std=1 + rng.random(du))
+
+
+def graph():
+    return make_graph(np.random.default_rng(1), N)  # an isolated node and directed edges
+
+
+def inputs(du, dtype, seed=2):
+    rng = np.random.default_rng(seed)
+    return rng.standard_normal((B, N, DX)).astype(dtype), (rng.standard_normal((B, T, N, du)).astype(dtype)
+                                                           if du else None)
+
+
+def stepped(model, g, x0, u):
+    """Simulator.step T times: (B, T+1, N, dx)."""
+    sim = Simulator(model, g)
+    xs = [sim.reset(x0)]
+    for t in range(T):
+        xs.append(sim.step(None if u is None else u[:, t]))
+    return np.stack(xs, axis=1)
+
+
+def load_module(path):
+    spec = importlib.util.spec_from_file_location("exported", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("du", [0, DU], ids=["no-controls", "controls"])
+@pytest.mark.parametrize("name", KINDS)
+def test_onnx_rollout_equals_the_simulator(name, du, dtype):
+    import onnxruntime
+
+    from mpnode.export.onnx_model import onnx_rollout
+
+    model, g = make_model(name, du, dtype), graph()
+    x0, u = inputs(du, dtype)
+    session = onnxruntime.InferenceSession(onnx_rollout(model, g, T).SerializeToString(),
+                                           providers=["CPUExecutionProvider"])
+    names = [i.name for i in session.get_inputs()]
+    assert names == (["x0", "u"] if du else ["x0"])
+    (got,) = session.run(None, dict(zip(names, (x0, u))))
+    want = stepped(model, g, x0, u)
+    assert got.dtype == dtype and got.shape == (B, T + 1, N, DX)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+    (one,) = session.run(None, dict(zip(names, (x0[:1], None if u is None else u[:1]))))  # B is free
+    np.testing.assert_allclose(one, got[:1], rtol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("name", KINDS)
+def test_numpy_module_equals_model_rollout(tmp_path, name, dtype):
+    model, g = make_model(name, DU, dtype), graph()
+    x0, u = inputs(DU, dtype)
+    write_numpy_module(model, g, tmp_path / "step.py")
+    module = load_module(tmp_path / "step.py")
+    got, want = module.rollout(x0, T, u), model.rollout(x0, g, u)
+    assert got.dtype == want.dtype == dtype and got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * np.abs(want).max())
+    np.testing.assert_allclose(module.rollout(x0[0], T, u[0]), got[0], rtol=1e-6)  # one trajectory, as Model.rollout
+    assert "'E1'" not in (tmp_path / "step.py").read_text()  # an export steps from a given state: no encoder
+    with pytest.raises(ValueError, match="on the exported graph"):
+        module.rollout(np.zeros((B, N + 1, DX)), T, u)
+
+
+def test_numpy_module_needs_numpy_alone(tmp_path):
+    """In a fresh interpreter where mpnode, scipy, numba and h5py cannot be imported."""
+    model, g = make_model("mpnode", DU, np.float64), graph()
+    write_numpy_module(model, g, tmp_path / "step.py")
+    x0, u = inputs(DU, np.float64)
+    np.save(tmp_path / "x0.npy", x0)
+    np.save(tmp_path / "u.npy", u)
+    code = ("import sys\nfor name in ('mpnode', 'scipy', 'numba', 'h5py'): sys.modules[name] = None\n"
+            "import numpy as np, step\n"
+            "np.save('x.npy', step.rollout(np.load('x0.npy'), 4, np.load('u.npy')))\n")
+    subprocess.run([sys.executable, "-c", code], cwd=tmp_path, check=True, env={**os.environ, "PYTHONPATH": ""})
+    np.testing.assert_allclose(np.load(tmp_path / "x.npy"), model.rollout(x0, g, u), rtol=1e-6, atol=1e-12)
+
+
+@pytest.fixture
+def files(tmp_path):
+    """A float64 model with controls and a trajectory file of its system on graph()."""
+    model = make_model("mpnode", DU, np.float64)
+    model.save(tmp_path / "model.h5")
+    x = np.random.default_rng(0).standard_normal((2, 3, N, DX))
+    write_trajectories(tmp_path / "data.h5", Trajectories(x=x, u=np.zeros((2, 2, N, DU)), graphs=[graph()], dt=0.1,
+                                                                system="test"))
+    return model, str(tmp_path / "model.h5"), str(tmp_path / "data.h5")
+
+
+def test_export_command_writes_an_onnx_rollout_and_a_numpy_module(tmp_path, files):
+    import onnxruntime
+
+    model, model_path, data = files
+    out = str(tmp_path / "model.onnx")
+    r = CliRunner().invoke(main, ["export", model_path, "-o", out, "--graph", data, "--steps", str(T)])
+    assert r.exit_code == 0, r.output
+    assert "inputs x0 (B, 7, 2), u (B, 4, 7, 2); output x (B, 5, 7, 2)" in r.output
+    x0, u = inputs(DU, np.float64)
+    (got,) = onnxruntime.InferenceSession(out, providers=["CPUExecutionProvider"]).run(None, {"x0": x0, "u": u})
+    np.testing.assert_allclose(got, model.rollout(x0, graph(), u), rtol=1e-5, atol=1e-8)
+    r = CliRunner().invoke(main, ["export", model_path, "-o", str(tmp_path / "step.py"), "--graph", data])
+    assert r.exit_code == 0, r.output
+    np.testing.assert_allclose(load_module(tmp_path / "step.py").rollout(x0, T, u), got, rtol=1e-5, atol=1e-8)
+
+
+def test_export_help_says_what_is_and_is_not_exported():
+    r = CliRunner().invoke(main, ["export", "--help"])
+    assert r.exit_code == 0
+    for words in ("What is exported", "What is not", "pip install 'mpnode[onnx]'", "x0 (B, N, dx)",
+                  "u (B, T, N, du)", "x (B, T+1, N, dx)", "rollout(x0, steps, u=None)", "numpy alone",
+                  "initial-state encoder"):
+        assert words in " ".join(r.output.split()), words
+
+
+@pytest.mark.parametrize("args, words", [
+    (["-o", "{tmp}/m.txt", "--graph", "{data}"], "--output: {tmp}/m.txt: has extension .txt"),
+    (["-o", "{tmp}/m.py", "--graph", "{data}", "--steps", "3"], "--steps: 3: is given for a NumPy module"),
+    (["-o", "{tmp}/m.onnx"], "--graph: nor --nodes is given"),
+    (["-o", "{tmp}/m.onnx", "--graph", "{data}", "--nodes", "3"], "--graph: and --nodes are both given"),
+    (["-o", "{data}", "--graph", "{data}"], "has extension .h5"),
+    (["-o", "{tmp}/m.onnx", "--graph", "{model}"], "{model}: format: is 'mpnode.model'"),
+])
+def test_export_errors_exit_2_and_write_nothing(tmp_path, files, args, words):
+    _, model_path, data = files
+    fill = dict(tmp=tmp_path, data=data, model=model_path)
+    r = CliRunner().invoke(main, ["export", model_path] + [a.format(**fill) for a in args])
+    assert r.exit_code == 2, r.output
+    assert words.format(**fill) in r.output and "Traceback" not in r.output
+    assert sorted(os.listdir(tmp_path)) == ["data.h5", "model.h5"]
+
+
+def test_node_model_on_another_size_is_refused(tmp_path):
+    model = make_model("node", DU, np.float64)
+    model.save(tmp_path / "node.h5")
+    r = CliRunner().invoke(main, ["export", str(tmp_path / "node.h5"), "-o", str(tmp_path / "n.py"), "--nodes", "4"])
+    assert r.exit_code == 2 and "trained on 7" in r.output
+    assert not (tmp_path / "n.py").exists()
+
+
+def test_without_onnx_the_command_stops_first_with_the_install_line(tmp_path, files):
+    _, model_path, data = files
+    code = "import sys\nsys.modules['onnx'] = None\nfrom cli.main import main\nmain()\n"
+    r = subprocess.run([sys.executable, "-c", code, "export", model_path, "-o", str(tmp_path / "m.onnx"),
+                        "--graph", data], capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "pip install 'mpnode[onnx]'" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "m.onnx").exists()
