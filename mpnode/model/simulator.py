@@ -190,6 +190,15 @@ class Simulator:
             raise InputError(where, "u", f"has shape {u.shape} and dtype {u.dtype}", f"finite numbers of shape {want}")
         return self.model.normalize_u(u).reshape(-1, spec.control_dim)
 
+    @property
+    def _z(self):
+        """The first (for one model: the) member's integrated state (B*N, dx+dm)."""
+        return None if self._zs is None else self._zs[0]
+
+    @_z.setter
+    def _z(self, z):
+        self._zs = [z] if self._zs is None else [z] + self._zs[1:]
+
     def _require_reset(self):
         if self._zs is None:
             raise RuntimeError("call reset(x0) first")
