@@ -181,6 +181,8 @@ def format_report(report, model_name):
                 parts.append(f"nmse > {thr} at step {h['median_step']}{when}")
         lines.append("  predictable horizon (median over trajectories of the first step whose error exceeds): "
                      + "; ".join(parts))
+    if r.get("coverage_90") is not None:
+        lines += format_spread(r)
     if "substeps" in r:
         lines += format_substeps(r["substeps"], r.get("substeps_auto"), r.get("stability"))
     lines.append(f"  learned rollout: {r['rollout_seconds']:.3g} s for {r['trajectories']} trajectories "
@@ -191,6 +193,22 @@ def format_report(report, model_name):
     elif "reference" in r:
         lines.append("  reference: the file names no system data_gen can rebuild; not timed")
     return "\n".join(lines)
+
+
+def format_spread(r):
+    """An ensemble's lines: how often the truth lies inside its bands, the error it expects, and
+    whether its spread ranks the trajectories' errors."""
+    names = r.get("state_names") or [f"x[{k}]" for k in range(len(r["spread_per_dim"]))]
+    return [(f"  ensemble: the truth inside the central 50% band {_pct(r['coverage_50'])} of the time, inside the "
+             f"90% band {_pct(r['coverage_90'])} (steps 1..{r['horizon']}, all nodes and dimensions)"),
+            "  spread (calibrated std, mean over trajectories, steps and nodes): "
+            + ", ".join(f"{n}: {_g(v)}" for n, v in zip(names, r["spread_per_dim"]))
+            + f"; as a normalised MSE {_g(r['spread_nmse'])} (the error it expects; measured: {_g(r['nmse'])})",
+            f"  spread against error across trajectories: Spearman {_g(r['spread_error_spearman'])}"]
+
+
+def _pct(v):
+    return v if isinstance(v, str) else f"{100 * v:.1f}%"
 
 
 def format_trust(r):
@@ -292,6 +310,14 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     quantity (data_gen names it: the coupled pendulum's energy), its drift along the
     predictions beside the truth's (--json: invariant_drift_by_block).
 
+    An ensemble MODEL (train --ensemble K): the error is the members' mean's; the report
+    adds the spread (the members' std times the scale fitted on validation data at
+    training time) per dimension (--json: spread_per_node, N x dx), the fraction of true
+    values inside the central 50% and 90% bands mean +- 0.674 / 1.645 spread over steps
+    1..T, all nodes and dimensions (coverage_50, coverage_90; null for one model), and the
+    Spearman correlation of each trajectory's spread with its error.  --predictions then
+    holds the mean as x and the spread as x_std; --plot shades the 90% band.
+
     Substeps: --substeps auto picks the RK4 substeps per dt by step doubling (the
     difference of the rollouts with s and 2s substeps estimates the error of s;
     the smallest s = 1, 2, 4, ... under --substeps-tol wins).  When predictions blow
@@ -305,8 +331,7 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     nothing is left behind).
     """
     from mpnode.base.atomic import check_outputs
-    from mpnode.data import read_trajectories, write_trajectories
-    from mpnode.evaluation.evaluate import predictions_file, substeps_attrs
+    from mpnode.data import read_trajectories
     from mpnode.model import Model
     from mpnode.model.provenance import system_mismatch
 
@@ -332,12 +357,7 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
         if not as_json:
             click.echo(f"wrote {plot}")
     if predictions:
-        attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report),
-                 **{k: traj.attrs[k] for k in ("state_names", "state_groups") if k in traj.attrs}}
-        pred = result.predictions[..., :traj.state_dim]  # a model's latent dimensions stay its own
-        pf = _or_why(lambda: predictions_file(pred, traj.graphs, traj.graph_index, traj.dt, traj.system,
-                                              os.path.abspath(model_file), traj.u, attrs, traj.t), result.stability)
-        write_trajectories(predictions, pf)
+        write_predictions(predictions, result, traj, data, model_file)
         if not as_json:
             click.echo(f"wrote {predictions}")
 
@@ -360,6 +380,22 @@ def _scene_start(model, model_file, scene, s, system):
         raise InputError(scene, "dt", f"the scene's controllers run every {s.dt:g} but the model steps {model.spec.dt:g}",
                          "a model trained at the scene's dt")
     return closed_loop_start(s)
+
+
+def write_predictions(path, result, traj, data, model_file):
+    """The predictions file of `eval`: the prediction (an ensemble's mean) as x, an ensemble's
+    spread as x_std, on the data's graphs and times; nothing written if one is non-finite."""
+    from mpnode.data import write_trajectories
+    from mpnode.evaluation.evaluate import predictions_file, substeps_attrs
+
+    attrs = {"predicted_from": os.path.abspath(data), **substeps_attrs(result.substeps, result.substeps_report),
+             **{k: traj.attrs[k] for k in ("state_names", "state_groups") if k in traj.attrs}}
+    pred = result.predictions[..., :traj.state_dim]  # a model's latent dimensions stay its own
+    spread = None if result.spread is None else result.spread[..., :traj.state_dim]
+    pf = _or_why(lambda: predictions_file(pred, traj.graphs, traj.graph_index, traj.dt, traj.system,
+                                          os.path.abspath(model_file), traj.u, attrs, traj.t, spread),
+                 result.stability)
+    write_trajectories(path, pf)
 
 
 def warn_off_range(entries):
@@ -423,7 +459,9 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup,
 
     A MODEL trained on another system than SCENE's is rolled out, with a warning, and so
     is one whose inputs leave the ranges it saw in training (states, in-degree, aggregates,
-    number of nodes: one warning per quantity, see `mpnode eval --help`).
+    number of nodes: one warning per quantity, see `mpnode eval --help`).  An ensemble
+    MODEL writes its members' mean as x and its calibrated spread as x_std (--plot shades
+    the 90% band).
     Exit status: 0 written; 2 bad input (also: more trajectories or steps than memory
     holds, refused before any work; OUTPUT being written by another run); 3 predictions
     non-finite (nothing written); 4 the system refused (OUTPUT could not be written).
@@ -451,15 +489,17 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup,
         from mpnode.plot import plot_simulation
 
         plot_simulation(sim.predictions, model.spec.dt, plot, state_names=st.state_names,
-                        title=f"{os.path.basename(model_file)} ({model.kind}) on {st.name}")
+                        title=f"{os.path.basename(model_file)} ({model.kind}) on {st.name}", spread=sim.spread)
         click.echo(f"wrote {plot}")
     attrs = {**st.attrs, "description": f"{model.kind} rollout of {st.description}",
              **substeps_attrs(sim.substeps, sim.substeps_report),
              **({"state_names": st.state_names} if st.state_names else {}),
              **({"state_groups": st.state_groups} if st.state_groups else {})}
-    pred = sim.predictions[..., :model.spec.state_dim - model.latent_dims]  # latent dimensions stay the model's
+    shown = model.spec.state_dim - model.latent_dims  # latent dimensions stay the model's
+    pred = sim.predictions[..., :shown]
+    spread = None if sim.spread is None else sim.spread[..., :shown]
     pf = _or_why(lambda: predictions_file(pred, st.graphs, st.graph_index, model.spec.dt, st.system,
-                                          os.path.abspath(model_file), sim.u, attrs=attrs), sim.stability)
+                                          os.path.abspath(model_file), sim.u, attrs=attrs, spread=spread), sim.stability)
     write_trajectories(output, pf)
     b, n = st.x0.shape[:2]
     node_steps = b * n * st.horizon

@@ -53,10 +53,25 @@ def _model_text(file, s):
              + (", clamped to zero" if s["zero_messages"] else "")
              + (linear + ")" if s["linear_aggregate"] else ""),
              f"integration: RK4, dt={s['dt']:g}, {s['substeps']} substep(s) per dt",
-             "arrays:      " + ", ".join(f"{k} {v}" for k, v in s["arrays"].items()),
+             "arrays:      " + ", ".join(f"{k} {v}" for k, v in s["arrays"].items())
+             + (" per member" if "ensemble" in s else ""),
+             *_ensemble_text(s.get("ensemble")),
              "attributes:  " + ("" if s["attrs"] else "none")]
     lines += [f"  {key} = {value!r}" for key, value in s["attrs"].items()]
     return "\n".join(line.rstrip() for line in lines)
+
+
+def _ensemble_text(e):
+    """An ensemble's lines: its members (seed, epoch, validation loss) and the spread's scale."""
+    if e is None:
+        return []
+    lines = [f"ensemble:    {e['members']} members; spread scale (calibrated on validation data) "
+             + ", ".join(f"{v:.3g}" for v in e["spread_scale"])]
+    for i, seed in enumerate(e.get("member_seed", [])):
+        more = "".join(f", {label} {e[key][i]:.4g}" for key, label in (("member_epoch", "epoch"),
+                       ("member_val_loss", "validation loss")) if key in e)
+        lines.append(f"  member {i}: seed {seed}{more}")
+    return lines
 
 
 def _sampling_text(m):

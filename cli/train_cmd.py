@@ -14,7 +14,7 @@ from mpnode.training import TrainConfig
 from mpnode.training.recipes import AUTO_ALL, FINETUNE_AUTO
 
 from .eval_cmd import check_plot, plot_option
-from .main import claim_outputs, main
+from .main import claim_outputs, main, scheduler_option
 
 #: `mpnode train SCENE` (a scene instead of files): trajectories generated and the default time budget
 #: (a scene set: its members' own counts, and the budget its evidence was measured at)
@@ -121,6 +121,26 @@ def training_options(f):
     return f
 
 
+def ensemble_options(f):
+    """--ensemble and --bootstrap (train and finetune); --time-limit is then the ensemble's."""
+    d = DEFAULT
+    options = [
+        click.option("--ensemble", type=click.IntRange(min=1), default=d.ensemble, show_default=True, metavar="K",
+                     help="Train K models (members: seeds SEED, SEED+1, ...; one validation split) into one file, "
+                          "in parallel (a process each on this machine, or on Dask with --scheduler).  Their "
+                          "spread says how far to trust a prediction: `mpnode eval` reports it, calibrated on "
+                          "the validation trajectories, and how often the truth falls inside its bands.  "
+                          "--time-limit is the whole ensemble's budget."),
+        click.option("--bootstrap/--no-bootstrap", default=None,
+                     help="With --ensemble: each member trains on a resample (with replacement) of the training "
+                          "trajectories (the validation split stays one): members that saw different data disagree "
+                          "where data are thin.  Default: off (members differ by seed only)."),
+    ]
+    for opt in reversed(options):
+        f = opt(f)
+    return f
+
+
 def recipe_option(paper):
     """--recipe of train and finetune; ``paper`` says what the paper's recipe sets."""
     return click.option("--recipe", type=click.Choice(["auto", "paper"]), default="auto", show_default=True,
@@ -147,7 +167,7 @@ def _parse_curriculum(ctx, param, value):
     return tuple(windows)
 
 
-def given_options(o, skip=("output", "resume", "trajectories", "recipe", "plot")):
+def given_options(o, skip=("output", "resume", "trajectories", "recipe", "plot", "scheduler")):
     """The library's options (runs.split_options' names) the user set: flags left at their
     defaults are not passed, so the recipe and the library's defaults fill them."""
     from click.core import ParameterSource
@@ -297,6 +317,8 @@ def print_validation(result):
               help=f"Only when DATA is a scene: trajectories to generate (default {SCENE_TRAJECTORIES}; a scene set: "
                    "each member's own count, or this many for each).")
 @training_options
+@ensemble_options
+@scheduler_option
 def train_cmd(data, trajectories, recipe, **o):
     """Learn a model from trajectory files DATA... (same dx, du and dt; graphs and N may differ).
 
@@ -347,11 +369,45 @@ def train_cmd(data, trajectories, recipe, **o):
         options["time_limit"] = runs.parse_duration(SCENE_SET_TIME_LIMIT if scene in SETS else SCENE_TIME_LIMIT)
     datasets = runs.read_all(data)
     resume = o["resume"]
-    result = run_with_progress(o["epochs"], options.get("time_limit"), output, lambda **kw: runs.train(
-        data, output, options, recipe_name=recipe, resume=resume, datasets=datasets, **kw), plot)
-    print_validation(result)
+    if o["ensemble"] > 1:
+        model = train_ensemble(o, data, output, options, recipe, datasets)
+    else:
+        result = run_with_progress(o["epochs"], options.get("time_limit"), output, lambda **kw: runs.train(
+            data, output, options, recipe_name=recipe, resume=resume, datasets=datasets, **kw), plot)
+        print_validation(result)
+        model = result.model
     if scene is not None:
-        _evaluate_on_fresh(scene, result.model, output, o["seed"])
+        _evaluate_on_fresh(scene, model, output, o["seed"])
+
+
+def check_ensemble(o):
+    """--ensemble K > 1 trains K runs into one file: no log or checkpoint of its own to plot or resume."""
+    for flag in ("resume", "plot"):
+        if o[flag]:
+            raise InputError(f"--{flag}", flag, "is given with --ensemble",
+                             "an ensemble without it (its members train afresh and leave no log or checkpoint)")
+
+
+def train_ensemble(o, data, output, options, recipe, datasets, parent=None, refit_norm=False):
+    """`--ensemble K`: the members on the pool or --scheduler, then their figures; returns the Ensemble."""
+    from mpnode.runs.ensemble import train_ensemble as train
+
+    check_ensemble(o)
+
+    def notify(msg):
+        click.echo(msg, err=True)
+
+    ensemble, results = train(data, output, options, recipe_name=recipe, scheduler=o["scheduler"], notify=notify,
+                              datasets=datasets, parent=parent, refit_norm=refit_norm)
+    for i, r in enumerate(results):
+        click.echo(f"member {i} (seed {ensemble.member_info['member_seed'][i]}): {r['status']}, best validation "
+                   f"normalised MSE {_fmt(r['val_nmse'])} at epoch {r['best_epoch']} of {r['epoch']}; "
+                   f"{r['seconds']:.1f} s")
+    if any(r["status"] == "diverged" for r in results):
+        raise NumericalError("a member diverged (its best finite model is kept in the ensemble)")
+    click.echo(f"wrote {output} (ensemble of {ensemble.size}; spread scale "
+               + ", ".join(f"{v:.3g}" for v in ensemble.spread_scale) + ")")
+    return ensemble
 
 
 def _scene_of(data):
@@ -416,6 +472,8 @@ def _evaluate_on_fresh(scene, model, output, seed):
                    "(auto: refit for the quadrotor swarm, keep otherwise; paper: keep).")
 @recipe_option("the paper's training settings: plateau schedule, batch 128")
 @training_options
+@ensemble_options
+@scheduler_option
 def finetune_cmd(model_file, data, refit_norm, recipe, **o):
     """Continue training MODEL on DATA... and write the result to OUTPUT.
 
@@ -432,6 +490,13 @@ def finetune_cmd(model_file, data, refit_norm, recipe, **o):
     claim_outputs({"--output": output})
     datasets = runs.read_all(data)
     resume, options = o["resume"], given_options(o)
+    from mpnode.runs.ensemble import ensemble_size
+
+    if o["ensemble"] == 1 and not resume:  # an ensemble's members each continue by default
+        o["ensemble"] = options["ensemble"] = ensemble_size(model_file)
+    if o["ensemble"] > 1:
+        train_ensemble(o, data, output, options, recipe, datasets, parent=model_file, refit_norm=refit_norm)
+        return
     result = run_with_progress(o["epochs"], o["time_limit"], output, lambda **kw: runs.finetune(
         model_file, data, output, options, refit_norm=refit_norm, recipe_name=recipe, resume=resume,
         datasets=datasets, **kw), o["plot"])

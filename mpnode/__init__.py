@@ -13,6 +13,7 @@ from mpnode.base.graph import Graph, block_diagonal  # noqa: F401
 #: public names, loaded on first use from the module that defines them
 _LAZY = {
     "Model": "mpnode.model.model",
+    "Ensemble": "mpnode.model.ensemble",
     "Simulator": "mpnode.model.simulator",
     "loss_and_grad": "mpnode.training.losses",
     "Trajectories": "mpnode.data.trajectories",

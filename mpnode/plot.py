@@ -24,6 +24,8 @@ from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
 from mpnode.evaluation.metrics import normalised_sq_error
 
+#: z of the central 90% band of a normal distribution (mpnode.model.ensemble.BAND_Z)
+BAND_90 = 1.6448536269514722
 INSTALL_HINT = "matplotlib installed: pip install 'mpnode[plot]' (from a checkout: pip install '.[plot]')"
 #: 1200 x 800 pixels: legible at 100 % on a screen and in a report
 FIGSIZE, DPI = (12, 8), 100
@@ -127,10 +129,11 @@ def _limits(truth, pred):
     return lo - pad, hi + pad
 
 
-def _state_grid(fig, spec, x, dt, names, bs, ns, ds, truth=None, times=None, dots=None):
+def _state_grid(fig, spec, x, dt, names, bs, ns, ds, truth=None, times=None, dots=None, spread=None):
     """Panels (state dimension x trajectory) of nodes ``ns``: x dashed over the truth when
     given, solid otherwise, and the observations ``dots`` (NaN: not observed) as dots; one colour
-    per node; time from ``times`` (B, T+1) or every dt.  Returns the axes (rows, columns)."""
+    per node; an ensemble's central 90% band x +- 1.645 ``spread`` shaded; time from ``times``
+    (B, T+1) or every dt.  Returns the axes (rows, columns)."""
     axes = np.empty((len(ds), len(bs)), dtype=object)
     with np.errstate(invalid="ignore"):
         for c, b in enumerate(bs):
@@ -145,6 +148,10 @@ def _state_grid(fig, spec, x, dt, names, bs, ns, ds, truth=None, times=None, dot
                         ax.plot(t, dots[b, :, i, d], ls="none", marker="o", ms=3.5, color=f"C{i % 10}", alpha=0.7)
                     ax.plot(t, np.where(np.isfinite(x[b, :, i, d]), x[b, :, i, d], np.nan), color=f"C{i % 10}",
                             lw=1.8, ls="--" if truth is not None else "-")
+                    if spread is not None:
+                        half = BAND_90 * spread[b, :, i, d]
+                        ax.fill_between(t, x[b, :, i, d] - half, x[b, :, i, d] + half, color=f"C{i % 10}",
+                                        alpha=0.18, lw=0)
                 reference = truth if truth is not None else dots
                 if reference is not None and np.isfinite(reference[b][:, list(ns), d]).any():
                     ax.set_ylim(*_limits(reference[b][:, list(ns), d], x[b][:, list(ns), d]))
@@ -159,10 +166,13 @@ def _state_grid(fig, spec, x, dt, names, bs, ns, ds, truth=None, times=None, dot
     return axes
 
 
-def _node_legend(ax, ns, with_truth, with_dots=False):
+def _node_legend(ax, ns, with_truth, with_dots=False, with_band=False):
     from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     handles = [Line2D([], [], color=f"C{i % 10}", lw=2, label=f"node {i}") for i in ns]
+    if with_band:
+        handles.append(Patch(color="0.5", alpha=0.3, label="ensemble's 90% band"))
     if with_truth:
         handles += [Line2D([], [], color="0.25", lw=1.8, label="truth"),
                     Line2D([], [], color="0.25", lw=1.8, ls="--", label="prediction")]
@@ -203,9 +213,10 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
     times = None if truth.regular else truth.times()
     fig = _figure()
     spec = fig.add_gridspec(len(ds), len(bs) + 1, width_ratios=[1] * len(bs) + [1.3])
+    spread = getattr(result, "spread", None)
     axes = _state_grid(fig, spec, pred, truth.dt, names, bs, ns, ds, truth=clean, times=times,
-                       dots=None if as_lines else x)
-    _node_legend(axes[0, 0], ns, with_truth=clean is not None, with_dots=not as_lines)
+                       dots=None if as_lines else x, spread=spread)
+    _node_legend(axes[0, 0], ns, with_truth=clean is not None, with_dots=not as_lines, with_band=spread is not None)
     scored = np.array(x if clean is None else clean)
     scored[..., list(result.hidden_dims or [])] = np.nan  # a state never measured in training has no units to compare
     for d in result.hidden_dims or []:
@@ -261,17 +272,17 @@ def _loggable(v):
 
 
 @_styled
-def plot_simulation(x, dt, out=None, *, state_names=None, trajectories=2, nodes=5, dims=4, title=None):
+def plot_simulation(x, dt, out=None, *, state_names=None, trajectories=2, nodes=5, dims=4, title=None, spread=None):
     """Simulated trajectories: one panel per state dimension (rows) and trajectory (columns),
     one line per node (the first ``nodes``).  x : (B, T+1, N, dx), e.g. a SimulationResult's
-    predictions;  state_names : one per dimension (default x[0], x[1], ...).  Returns the
-    Figure; writes ``out``."""
+    predictions;  state_names : one per dimension (default x[0], x[1], ...);  spread : an
+    ensemble's (like x), drawn as the central 90% band.  Returns the Figure; writes ``out``."""
     x = np.asarray(x, dtype=np.float64)
     bs, ns, ds = _selection(x.shape, trajectories, nodes, dims)
     names = dimension_names({"state_names": state_names}, x.shape[3])
     fig = _figure()
-    axes = _state_grid(fig, fig.add_gridspec(len(ds), len(bs)), x, dt, names, bs, ns, ds)
-    _node_legend(axes[0, 0], ns, with_truth=False)
+    axes = _state_grid(fig, fig.add_gridspec(len(ds), len(bs)), x, dt, names, bs, ns, ds, spread=spread)
+    _node_legend(axes[0, 0], ns, with_truth=False, with_band=spread is not None)
     more = f", the first {len(ns)} of {x.shape[2]} nodes" if len(ns) < x.shape[2] else ""
     fig.suptitle(f"{title or 'simulated trajectories'}{more}{_shown(names, ds, x.shape[3])}")
     return _finish(fig, out)

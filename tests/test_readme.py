@@ -24,6 +24,7 @@ README = ROOT / "README.md"
 SHRINK = {
     "coupled_pendulum -o model.h5": "coupled_pendulum -o model.h5 --trajectories 20 --epochs 2",
     "--trajectories 1000": "--trajectories 20",
+    "--ensemble 5 --time-limit 10 ": "--ensemble 2 --epochs 2 ",
     "--time-limit 10m": "--epochs 2",
     "--trajectories 50 --seed 1": "--trajectories 10 --seed 1",
     "-o l10_model.h5 --time-limit 5m": "-o l10_model.h5 --epochs 2",

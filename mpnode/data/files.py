@@ -96,6 +96,8 @@ def _read_open_file(f, source):
                 raise InputError(source, name, "is a dataset of format version 2 in a version 1 file",
                                  "format_version 2 (or no such dataset)")
             extra[name] = _read_array(f, name, source)
+    if "x_std" in f:
+        extra["x_std"] = _read_array(f, "x_std", source)
     traj = Trajectories(x=x, graphs=graphs, dt=plain_attr(f.attrs["dt"]), system=plain_attr(f.attrs["system"]),
                         u=u, graph_index=graph_index, attrs=attrs, params=_read_group(f, "params", source),
                         aux=_read_group(f, "aux", source), **extra)
@@ -199,7 +201,7 @@ def write_trajectories(path, traj=None, *, x=None, u=None, graph=None, graph_ind
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs.update(format=FORMAT_NAME, format_version=version, dt=float(traj.dt), system=traj.system)
         f["x"] = np.asarray(traj.x)
-        for name, value in (("u", traj.u), ("t", traj.t), ("truth", traj.truth)):
+        for name, value in (("u", traj.u), ("t", traj.t), ("truth", traj.truth), ("x_std", traj.x_std)):
             if value is not None:
                 f[name] = np.asarray(value)
         if len(traj.graphs) > 1:

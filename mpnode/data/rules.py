@@ -40,6 +40,13 @@ def validate_trajectories(traj, source):
         if truth.shape != x.shape:
             raise InputError(source, "truth", f"has shape {truth.shape}", f"x's shape {x.shape}")
         _check_float_values(truth if within.all() else _inside(truth, within), "truth", source)
+    if traj.x_std is not None:
+        spread = np.asarray(traj.x_std)
+        if spread.shape != x.shape:
+            raise InputError(source, "x_std", f"has shape {spread.shape}", f"x's shape {x.shape}")
+        _check_float_values(spread if within.all() else _inside(spread, within), "x_std", source)
+        if np.any(spread < 0):
+            raise InputError(source, "x_std", "has a value < 0", "spreads >= 0 (standard deviations)")
     _check_controls(traj, x.shape, within, source)
     _check_graphs(traj, x.shape, source)
     for key in traj.attrs:

@@ -33,6 +33,8 @@ class Trajectories:
     t : ndarray, shape (B, T+1), or None -- observation times, strictly increasing; a shorter
         trajectory ends in NaN (padding); None: t[b, k] = k dt
     truth : ndarray like x, or None -- the clean states behind x (data degraded on purpose)
+    x_std : ndarray like x, or None -- of predictions: how far each value may be off (an
+        ensemble's calibrated spread, in x's units)
     attrs : dict -- further root attributes (parameters, seed, solver, tolerances)
     params : dict name -> ndarray -- the `params/` group (system parameters)
     aux : dict name -> ndarray -- the `aux/` group (e.g. the quadrotor load)
@@ -49,6 +51,7 @@ class Trajectories:
     aux: dict = field(default_factory=dict)
     t: np.ndarray = None
     truth: np.ndarray = None
+    x_std: np.ndarray = None
 
     def __post_init__(self):
         if self.graph_index is None:

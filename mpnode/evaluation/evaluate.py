@@ -36,6 +36,7 @@ from .metrics import (
     predictable_horizon,
     state_groups,
 )
+from .spread import spread_figures
 
 
 @dataclass
@@ -57,6 +58,10 @@ class EvalResult:
         [] when none did), or None when its file records no training ranges
     invariant_drift : (prediction's, truth's) relative drift per step (T+1,) of the quantity
         ``evaluate(invariant=...)`` was given (metrics.invariant_drift), or None
+    scored : (B, T+1, N, dx) what the predictions were scored against (NaN: not scored)
+    member_std, spread : of an ensemble (predictions are its mean): the members' standard
+        deviation and the calibrated spread (data units, the shape of predictions); else None
+    ensemble : of an ensemble, mpnode.evaluation.spread.spread_figures (coverage, spread); else None
     per_dim, hold_per_dim : (T+1, dx) normalised MSE per step and state dimension, of the model and
         of holding the initial state;  groups : {group: [dimensions]} of the file's state_groups
     """
@@ -81,6 +86,10 @@ class EvalResult:
     hidden_dims: list = None
     off_range: list = None
     invariant_drift: tuple = None
+    scored: np.ndarray = None
+    member_std: np.ndarray = None
+    spread: np.ndarray = None
+    ensemble: dict = None
     per_dim: np.ndarray = None
     hold_per_dim: np.ndarray = None
     groups: dict = None
@@ -114,7 +123,7 @@ class EvalResult:
                 "suggested_substeps": self.stability and self.stability["suggested_substeps"],
                 "stability": self.stability, "predictable_horizon": self.horizons, "warmup": self.warmup,
                 "nmse_per_dim": [_num(float(v)) for v in self.nmse_per_dim or []], "hidden_dims": self.hidden_dims or [],
-                **self.trust()}
+                **self.trust(), "coverage_50": None, "coverage_90": None, **(self.ensemble or {})}
 
     def trust(self):
         """The summary's entries that say how far to trust the error: nMSE by block of steps
@@ -145,8 +154,9 @@ def _errors(per_step, first=1):
 @dataclass
 class SimulationResult:
     """predictions : ndarray, shape (B, T+1, N, dx), data units;  seconds : rollout wall time;
-    substeps, substeps_report, stability : as in EvalResult;  u : (B, T, N, du) the controls
-    (given, or chosen by a closed loop), or None;  off_range : as in EvalResult."""
+    substeps, substeps_report, stability, off_range : as in EvalResult;  spread : an ensemble's
+    calibrated spread (the shape of predictions, data units), else None;  u : (B, T, N, du) the
+    controls (given, or chosen by a closed loop), or None."""
 
     predictions: np.ndarray
     seconds: float
@@ -154,6 +164,7 @@ class SimulationResult:
     substeps_report: dict
     stability: dict
     off_range: list = None
+    spread: np.ndarray = None
     u: np.ndarray = None
 
 
@@ -230,7 +241,7 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     x0 = start_states(model, traj, warmup, start)
     model, auto_report = with_substeps(model, substeps, x0, traj.graphs, traj.graph_index, u, t1 - 1,
                                        substeps_tol, max_substeps)
-    seconds, pred = _timed_rollout(model, x0, traj, u, times, max_nodes)
+    seconds, pred, member_std = _timed_rollout(model, x0, traj, u, times, max_nodes)
     clean = _truth_of(traj, truth, source)
     score = _scored(clean, traj, max(warmup, 1), truth is None and traj.truth is None)
     hidden = [int(k) for k in np.atleast_1d(model.attrs.get("unmeasured_dims", [])) if 0 <= int(k) < dx]
@@ -245,6 +256,8 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
         stability = stepsize.stability_check(model, x0, _per_trajectory(traj.graphs, traj.graph_index), u,
                                              pred, bad, substeps_tol, max_substeps=max_substeps, box=box)
     first = max(warmup, 1)
+    spread = None if member_std is None else member_std * model.spread_scale
+    figures = None if spread is None else spread_figures(pred, spread, score, clean)
     return EvalResult(err, float(_mean(err[first:])), _last(err), int(np.argmax(blown)) if blown.any() else None,
                       int(bad[:, -1].sum()), seconds, b * n * (t1 - 1) / max(seconds, 1e-12), pred, b, t1 - 1, n,
                       model.spec.substeps, auto_report, stability,
@@ -252,7 +265,8 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
                       nmse_per_dimension(pred, score, clean).tolist(), hidden,
                       inputs_off_range(model, x0, traj.graphs, traj.graph_index, u, traj.horizon, times, state_names),
                       None if invariant is None else invariant_drift(invariant, pred, clean), per_dim=per_dim,
-                      hold_per_dim=hold_nmse_per_step_and_dim(score, spread=clean), groups=groups)
+                      hold_per_dim=hold_nmse_per_step_and_dim(score, spread=clean), groups=groups,
+                      scored=score, member_std=member_std, spread=spread, ensemble=figures)
 
 
 def inputs_off_range(model, x0, graphs, graph_index, u, horizon, times=None, state_names=None):
@@ -261,6 +275,7 @@ def inputs_off_range(model, x0, graphs, graph_index, u, horizon, times=None, sta
     seen = model.attrs.get(ranges.KEY)
     if not seen:
         return None
+    model = getattr(model, "members", [model])[0]  # an ensemble: its first member's inputs
     return ranges.off_range(seen, ranges.scan(model, x0, graphs, graph_index, u, horizon, times), state_names)
 
 
@@ -270,6 +285,9 @@ def start_states(model, traj, warmup, start="encoder"):
     to them through the engine when ``start`` is "fit" (mpnode.model.start)."""
     if start not in STARTS:
         raise InputError("--start", "start", f"is {start!r}", " or ".join(STARTS))
+    if start == "fit" and hasattr(model, "members"):
+        raise InputError("--start", "start", "is fit for an ensemble", "--start encoder (each member's start is "
+                         "the members' mean estimate)")
     k = max(int(warmup), 1)
     times = None if traj.regular else traj.times()[:, :k]
     obs = np.asarray(traj.x)[:, :k]
@@ -302,12 +320,25 @@ STARTS = ("encoder", "fit")
 
 
 def _timed_rollout(model, x0, traj, u, times, max_nodes):
-    """(seconds, predictions): every trajectory rolled out, the compiled kernels loaded first."""
-    rollout_all(model, x0[:1], traj.graphs, traj.graph_index[:1], 1, None if u is None else u[:1, :1],
+    """(seconds, predictions, the members' std or None): every trajectory rolled out (an
+    ensemble's members each: the predictions are their mean), the compiled kernels loaded first."""
+    first = getattr(model, "members", [model])[0]
+    rollout_all(first, x0[:1], traj.graphs, traj.graph_index[:1], 1, None if u is None else u[:1, :1],
                 times=None if times is None else times[:1, :2])
     start = time.perf_counter()
-    pred = rollout_all(model, x0, traj.graphs, traj.graph_index, traj.horizon, u, max_nodes, times)
-    return time.perf_counter() - start, pred
+    pred, member_std = rollout_spread(model, x0, traj.graphs, traj.graph_index, traj.horizon, u, max_nodes, times)
+    return time.perf_counter() - start, pred, member_std
+
+
+def rollout_spread(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384, times=None):
+    """(predictions, None) of a Model (`rollout_all`); of an ensemble (its members each rolled
+    out), (the members' mean, their standard deviation (ddof 1, float64))."""
+    members = getattr(model, "members", None)
+    if members is None:
+        return rollout_all(model, x0, graphs, graph_index, steps, u, max_nodes, times), None
+    stacked = np.stack([rollout_all(m, x0, graphs, graph_index, steps, u, max_nodes, times) for m in members])
+    with np.errstate(all="ignore"):
+        return stacked.mean(axis=0), np.std(stacked.astype(np.float64), axis=0, ddof=1)
 
 
 def _truth_of(traj, truth, source):
@@ -378,16 +409,18 @@ def simulate(model, x0, graphs, graph_index, horizon, u=None, substeps=None, sub
                                        max_substeps)
     start = time.perf_counter()
     if controls is None:
-        pred = rollout_all(model, x0, graphs, graph_index, horizon, u)
+        pred, member_std = rollout_spread(model, x0, graphs, graph_index, horizon, u)
     else:
-        pred, u = closed_loop_rollout(model, x0, graphs, graph_index, horizon, controls)
+        (pred, u), member_std = closed_loop_rollout(model, x0, graphs, graph_index, horizon, controls), None
     seconds = time.perf_counter() - start
     box = simulation_box(model, x0)
     stability = stepsize.stability_check(model, x0, _per_trajectory(graphs, graph_index), u, pred,
                                          blow_up_mask(pred, box=box), substeps_tol, max_substeps=max_substeps,
                                          box=box)
+    spread = None if member_std is None else member_std * model.spread_scale
     return SimulationResult(pred, seconds, model.spec.substeps, auto_report, stability,
-                            inputs_off_range(model, x0, graphs, graph_index, u, horizon, state_names=state_names), u)
+                            inputs_off_range(model, x0, graphs, graph_index, u, horizon, state_names=state_names),
+                            spread=spread, u=u)
 
 
 def closed_loop_rollout(model, x0, graphs, graph_index, horizon, controls):
@@ -424,9 +457,10 @@ def learned_seconds_per_trajectory(model, traj, k, repeats=3):
     return best / k
 
 
-def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, attrs=None, t=None):
+def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, attrs=None, t=None, spread=None):
     """Trajectories holding ``pred`` (B, T+1, N, dx) on ``graphs`` (and controls ``u``), at the
-    observation times ``t`` (B, T+1) when the data had their own.
+    observation times ``t`` (B, T+1) when the data had their own; an ensemble's calibrated
+    ``spread`` (like pred) as ``x_std``.
 
     attrs say they are predictions (``predicted_by`` = model_name); raises NumericalError
     when a prediction is non-finite (the trajectory format forbids it).
@@ -437,7 +471,8 @@ def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, 
                              "predictions not written (the trajectory format forbids NaN/inf)")
     attrs = {"predicted_by": str(model_name), "prediction": 1, **(attrs or {})}
     return Trajectories(x=pred, graphs=list(graphs), dt=dt, system=system, u=u,
-                        graph_index=np.asarray(graph_index) if len(graphs) > 1 else None, attrs=attrs, t=t)
+                        graph_index=np.asarray(graph_index) if len(graphs) > 1 else None, attrs=attrs, t=t,
+                        x_std=None if spread is None else np.asarray(spread, dtype=np.asarray(pred).dtype))
 
 
 def substeps_attrs(substeps, auto_report):

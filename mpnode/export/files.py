@@ -37,6 +37,9 @@ def export_file(model_path, output, graph_path=None, nodes=None, steps=None, cla
     if claim is not None:
         claim()
     model = Model.load(model_path)
+    if hasattr(model, "members"):
+        raise InputError(model_path, "ensemble_size", f"is an ensemble of {model.size} models",
+                         "one model's file (an exported module computes one rollout, not a mean and a spread)")
     graph = _graph(graph_path, nodes)
     model.check_nodes(graph.n_nodes, graph_path or "--nodes", "nodes")
     if ext == ".py":

@@ -1,5 +1,6 @@
 """Model files (docs/model-format.md, version 2; 3 for a model with the linear aggregate path;
-version 1 still reads): validated reader, atomic writer.
+4 with an initial-state encoder; 5 for an ensemble; version 1 still reads): validated reader,
+atomic writer.
 
 The reader returns what the file holds (spec, flat parameters, normalisation, extra
 attributes) and the writer takes the same; `mpnode.model.Model` makes a model of them.
@@ -20,14 +21,22 @@ FORMAT_VERSION = 2
 LINEAR_PATH_VERSION = 3
 #: written only for a model with an initial-state encoder (with or without the linear path)
 ENCODER_VERSION = 4
-VERSIONS = (1, FORMAT_VERSION, LINEAR_PATH_VERSION, ENCODER_VERSION)
+#: written only for an ensemble (K members' parameters stacked, their calibrated spread), so that
+#: an older reader refuses it instead of misreading the stacked arrays
+ENSEMBLE_VERSION = 5
+VERSIONS = (1, FORMAT_VERSION, LINEAR_PATH_VERSION, ENCODER_VERSION, ENSEMBLE_VERSION)
+#: the datasets under ensemble/ of an ensemble file: the spread's scale (dx,), then per member (K,)
+ENSEMBLE_ARRAYS = ("spread_scale", "member_seed", "member_epoch", "member_val_loss")
 #: the optional group of what the model saw in training (mpnode.model.ranges), and its key in attrs;
 #: any version may hold it, and a reader that does not know it ignores it
 SEEN, SEEN_ATTR = "seen", "seen_ranges"
 
 
-def version_of(spec):
-    """The oldest format version that holds ``spec``: an older reader then refuses what it would misread."""
+def version_of(spec, ensemble=False):
+    """The oldest format version that holds ``spec`` (of an ensemble's members when ``ensemble``):
+    an older reader then refuses what it would misread."""
+    if ensemble:
+        return ENSEMBLE_VERSION
     if spec.encoder_window:
         return ENCODER_VERSION
     return LINEAR_PATH_VERSION if spec.linear_path else FORMAT_VERSION
@@ -62,7 +71,8 @@ _TYPES = {
                       " or ".join(LINEAR_TARGETS) + " (what the linear aggregate path adds to)"),
     "encoder_window": (lambda v: _is_int(v) and v >= 1, "an integer >= 1 (the initial-state encoder's observations)"),
 }
-_SPEC_ATTRS = set(_TYPES) | {"format", "format_version", "activation", "integrator", "kind", "aggregation"}
+_SPEC_ATTRS = set(_TYPES) | {"format", "format_version", "activation", "integrator", "kind", "aggregation",
+                             "ensemble_size"}
 
 
 class _Attrs:
@@ -104,12 +114,19 @@ class _Attrs:
             spec = FieldSpec.from_attrs(values)
         except InputError as e:
             raise InputError(self.path, e.field, e.problem, e.expected) from None
-        if version > 1 and version != version_of(spec):
-            raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(spec.linear_path)} "
-                             f"and encoder_window {spec.encoder_window}",
-                             f"{ENCODER_VERSION} exactly when the model has an initial-state encoder, else "
-                             f"{LINEAR_PATH_VERSION} exactly when it has the linear aggregate path, else {FORMAT_VERSION}")
+        if (version > 1 or "ensemble_size" in self.a) and version != version_of(spec, "ensemble_size" in self.a):
+            raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(spec.linear_path)}, "
+                             f"encoder_window {spec.encoder_window} and ensemble_size {self.a.get('ensemble_size')}",
+                             f"{ENSEMBLE_VERSION} exactly for an ensemble (ensemble_size), else {ENCODER_VERSION} "
+                             f"exactly when the model has an initial-state encoder, else {LINEAR_PATH_VERSION} "
+                             f"exactly when it has the linear aggregate path, else {FORMAT_VERSION}")
         return spec
+
+    def members(self):
+        """K, the members of an ensemble file (its ``ensemble_size``), or None for one model."""
+        if "ensemble_size" not in self.a:
+            return None
+        return self.need("ensemble_size", lambda v: _is_int(v) and v >= 1, "an integer >= 1 (the ensemble's members)")
 
     def version(self):
         """The format version, after the attributes every version has."""
@@ -123,7 +140,8 @@ class _Attrs:
 
 def read_model(path):
     """What ``path`` holds: {spec, theta, x_mean, x_std, u_mean, u_std, attrs} (the arguments of
-    mpnode.model.Model); InputError(path, field, ...) for anything off-format."""
+    mpnode.model.Model); for an ensemble theta is (K, P) and ``ensemble`` holds its arrays
+    (ENSEMBLE_ARRAYS).  InputError(path, field, ...) for anything off-format."""
     import h5py
 
     try:
@@ -138,10 +156,11 @@ def read_model(path):
         with f:
             attrs = _Attrs(f, path)
             spec = attrs.spec()
+            k = attrs.members()
             shapes = layouts.param_shapes(spec)
             params, dtype = {}, None
             for name, shape in shapes.items():
-                arr = _dataset(f, path, f"params/{name}", shape)
+                arr = _dataset(f, path, f"params/{name}", shape if k is None else (k,) + tuple(shape))
                 if dtype is None:
                     dtype = arr.dtype
                 elif arr.dtype != dtype:
@@ -156,7 +175,8 @@ def read_model(path):
             for key in ("x_std", "u_std"):
                 if key in norm and np.any(norm[key] <= 0):
                     raise InputError(path, f"norm/{key}", "has a value <= 0", "standard deviations > 0")
-            extra = {k: v for k, v in attrs.a.items() if k not in _SPEC_ATTRS}
+            ensemble = None if k is None else _ensemble_arrays(f, path, k, dx)
+            extra = {name: v for name, v in attrs.a.items() if name not in _SPEC_ATTRS}
             if SEEN in f:
                 extra[SEEN_ATTR] = _seen(f, path)
     except InputError:
@@ -164,8 +184,31 @@ def read_model(path):
     except H5_DAMAGE as e:  # damaged bytes that h5py only notices while reading
         raise InputError(path, "file", f"cannot be read ({' '.join(str(e).split())})",
                          "an intact mpnode model file") from None
-    return dict(spec=spec, theta=layouts.join(params, shapes, dtype=dtype), x_mean=norm["x_mean"],
-                x_std=norm["x_std"], u_mean=norm.get("u_mean"), u_std=norm.get("u_std"), attrs=extra)
+    if k is None:
+        theta = layouts.join(params, shapes, dtype=dtype)
+    else:
+        theta = np.stack([layouts.join({n: a[i] for n, a in params.items()}, shapes, dtype=dtype) for i in range(k)])
+    out = dict(spec=spec, theta=theta, x_mean=norm["x_mean"], x_std=norm["x_std"], u_mean=norm.get("u_mean"),
+               u_std=norm.get("u_std"), attrs=extra)
+    if ensemble is not None:
+        out["ensemble"] = ensemble
+    return out
+
+
+def _ensemble_arrays(f, path, k, dx):
+    """The ``ensemble/`` datasets of a K-member file: the spread's scale (dx,) > 0 and each
+    member's seed, epoch and validation loss (K,)."""
+    out = {"spread_scale": _dataset(f, path, "ensemble/spread_scale", (dx,))}
+    if np.any(out["spread_scale"] <= 0):
+        raise InputError(path, "ensemble/spread_scale", "has a value <= 0", "scales > 0 (1: not calibrated)")
+    for name in ENSEMBLE_ARRAYS[1:]:
+        full = f"ensemble/{name}"
+        if full in f:
+            d = f[full]
+            if getattr(d, "shape", None) != (k,):
+                raise InputError(path, full, f"has shape {getattr(d, 'shape', None)}", f"shape ({k},): one per member")
+            out[name] = d[()]
+    return out
 
 
 def _dataset(f, path, name, shape):
@@ -194,15 +237,19 @@ def _seen(f, path):
     return out
 
 
-def spec_attrs(spec):
-    """The root attributes that describe ``spec`` (format version 2, or 3 with the linear path)."""
-    version = version_of(spec)
-    return dict(format=FORMAT, format_version=version, activation="tanh", integrator="rk4", **spec.attrs())
+def spec_attrs(spec, members=None):
+    """The root attributes that describe ``spec`` (format version `version_of`), and an
+    ensemble's size when ``members`` (K) is given."""
+    version = version_of(spec, members is not None)
+    more = {} if members is None else {"ensemble_size": int(members)}
+    return dict(format=FORMAT, format_version=version, activation="tanh", integrator="rk4", **spec.attrs(), **more)
 
 
-def write_model(path, spec, params, norm, attrs):
+def write_model(path, spec, params, norm, attrs, ensemble=None):
     """Write a model file atomically: ``params`` {name: array} of spec's layout, ``norm``
-    {x_mean, x_std, u_mean, u_std} (the u entries only when du > 0), extra ``attrs``."""
+    {x_mean, x_std, u_mean, u_std} (the u entries only when du > 0), extra ``attrs``.
+    An ensemble (version 5): ``params`` arrays have a leading axis of K members and ``ensemble``
+    holds {spread_scale (dx,), member_seed, member_epoch, member_val_loss (K,)}."""
     import h5py
 
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
@@ -211,7 +258,9 @@ def write_model(path, spec, params, norm, attrs):
                 f.attrs[k] = v
         for name, values in (attrs.get(SEEN_ATTR) or {}).items():
             f[f"{SEEN}/{name}"] = np.asarray(values, dtype=np.float64)
-        f.attrs.update(spec_attrs(spec))
+        f.attrs.update(spec_attrs(spec, None if ensemble is None else len(next(iter(params.values())))))
+        for name, arr in (ensemble or {}).items():
+            f[f"ensemble/{name}"] = arr
         for name, arr in params.items():
             f[f"params/{name}"] = arr
         for name in ("x_mean", "x_std", "u_mean", "u_std")[:4 if spec.control_dim else 2]:

@@ -22,6 +22,7 @@ from mpnode.engine.schedule import MAX_STEPS_PER_INTERVAL
 from . import encoder
 from . import file as model_file
 from .config import configured
+from .ensemble import Ensemble
 
 
 class Model:
@@ -67,8 +68,13 @@ class Model:
 
     @classmethod
     def load(cls, path):
-        """Read and validate a model file; raises InputError naming the file and field."""
-        return cls(**model_file.read_model(path))
+        """Read and validate a model file; raises InputError naming the file and field.  An
+        ensemble file (version 5) gives an `mpnode.model.ensemble.Ensemble`, which every reader
+        uses as a Model (its rollout is the members' mean) and which adds the spread."""
+        held = model_file.read_model(path)
+        if "ensemble" in held:
+            return Ensemble.from_file(held, path, cls)
+        return cls(**held)
 
     def save(self, path, **attrs):
         """Write the model file atomically (extra ``attrs`` beside the model's own); refuses

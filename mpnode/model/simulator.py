@@ -14,6 +14,7 @@ from mpnode.base.arguments import check_path
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph, as_graph, is_networkx
 
+from .ensemble import Ensemble
 from .model import Model, batch_graph, node_intervals, to_time_major
 from .ranges import Watch
 
@@ -21,7 +22,8 @@ from .ranges import Watch
 class Simulator:
     """Step B copies of a networked system through a learned model.
 
-    model : a Model, or the path of a model file (any kind: mpnode, l2s, node)
+    model : a Model or an Ensemble, or the path of a model file (any kind: mpnode, l2s, node;
+        an ensemble steps every member: `state` is their mean, `spread` the calibrated spread)
     graph : an mpnode Graph or a networkx graph (nodes 0..N-1), shared by the B copies
     backend : "auto", "numba" or "numpy" (as Model.rollout)
 
@@ -36,14 +38,17 @@ class Simulator:
     """
 
     def __init__(self, model, graph, backend="auto"):
-        self.model = model if isinstance(model, Model) else Model.load(check_path(model, "Simulator", "model"))
+        if not isinstance(model, (Model, Ensemble)):
+            model = Model.load(check_path(model, "Simulator", "model"))
+        self.model = model
+        self._models = getattr(model, "members", [model])
         self.graph = _as_graph(graph)
         self.model.check_nodes(self.graph.n_nodes)
         if backend not in engine.BACKENDS:
             raise InputError("Simulator", "backend", f"is {backend!r}", " or ".join(engine.BACKENDS))
         self.backend = engine.resolve_backend(backend)
         self.steps = 0  # steps taken since reset
-        self._z = None
+        self._zs = None  # every member's integrated state
 
     @property
     def dt(self):
@@ -63,10 +68,11 @@ class Simulator:
             raise InputError("Simulator.reset", "x0", "holds non-finite or non-numeric values", "finite numbers")
         self._shape = x0.shape
         self._flat = batch_graph(self.graph, x0.shape[0])  # the batch graph rollout uses: same plan
-        self._z = engine.initial_state(spec, m.normalize_x(x0).reshape(-1, spec.state_dim), m.dtype)
+        self._zs = [engine.initial_state(spec, m.normalize_x(x0).reshape(-1, spec.state_dim), m.dtype)
+                    for _ in self._models]
         self.steps = 0
-        self._watch = Watch(m, self.graph, x0.shape[0])
-        self._watch(self._z, None, 0)
+        self._watch = Watch(self._models[0], self.graph, x0.shape[0])  # an ensemble: its first member's inputs
+        self._watch(self._zs[0], None, 0)
         return self.state
 
     def warm_up(self, observations, times=None, u=None):
@@ -82,22 +88,23 @@ class Simulator:
         if k > 1:
             iv = None if times is None else np.repeat(node_intervals(times), n, axis=1)
             un = None if u is None else to_time_major(m.normalize_u(np.asarray(u)))
-            _, self._z = engine.integrate(spec, m.theta, self._z, self._flat, un, k - 1, backend=self.backend,
-                                          intervals=iv)
-            self._watch(self._z, None if un is None else un[-1], 0)
+            self._zs = [engine.integrate(spec, one.theta, z, self._flat, un, k - 1, backend=self.backend,
+                                         intervals=iv)[1] for one, z in zip(self._models, self._zs)]
+            self._watch(self._zs[0], None if un is None else un[-1], 0)
         return self.state
 
     def step(self, u=None):
         """Advance every copy by one dt under controls u (B, N, du) held over the step (None
         for a model without controls); returns the next state (B, N, dx) in data units."""
-        if self._z is None:
+        if self._zs is None:
             raise RuntimeError("call reset(x0) before step()")
         m, spec = self.model, self.model.spec
         u = self._controls(u, "Simulator.step")
         u = None if u is None else u[None]
-        _, self._z = engine.integrate(spec, m.theta, self._z, self._flat, u, 1, backend=self.backend)
+        self._zs = [engine.integrate(spec, one.theta, z, self._flat, u, 1, backend=self.backend)[1]
+                    for one, z in zip(self._models, self._zs)]
         self.steps += 1
-        self._watch(self._z, None if u is None else u[0], self.steps)
+        self._watch(self._zs[0], None if u is None else u[0], self.steps)
         return self.state
 
     def jacobians(self, u=None, sparse=False):
@@ -115,8 +122,12 @@ class Simulator:
 
         self._require_reset()
         m, spec = self.model, self.model.spec
+        if len(self._models) > 1:
+            raise InputError("Simulator.jacobians", "model", f"is an ensemble of {len(self._models)} members",
+                             "one model (an ensemble's members each have their own state: e.g. "
+                             "Simulator(ensemble.members[0], graph))")
         un = self._controls(u, "Simulator.jacobians")
-        jx, ju = step_jacobians(spec, m.theta, self._z, self.graph, un, sparse)
+        jx, ju = step_jacobians(spec, m.theta, self._zs[0], self.graph, un, sparse)
         n = self.graph.n_nodes
         sx = np.tile(m.x_std, n)  # node-major scales: d x / d xn = std
         su = np.tile(m.u_std, n)
@@ -135,19 +146,34 @@ class Simulator:
     @property
     def state(self):
         """The current state (B, N, dx) in the data's units and the model's dtype."""
+        return np.mean(self._member_states(), axis=0).astype(self.model.dtype)
+
+    @property
+    def spread(self):
+        """An ensemble's calibrated spread of the current state (B, N, dx), data units, float64
+        (mpnode.model.ensemble); None for one model."""
+        if len(self._models) < 2:
+            self._require_reset()
+            return None
+        return self.model.spread(self._member_states())
+
+    def _member_states(self):
+        """(K, B, N, dx) every member's current state in data units (K = 1 for one model)."""
         self._require_reset()
-        x = self._z[:, :self.model.spec.state_dim].reshape(self._shape)
-        return self.model.denormalize_x(x).astype(self.model.dtype)
+        dx = self.model.spec.state_dim
+        return np.stack([self.model.denormalize_x(z[:, :dx].reshape(self._shape)) for z in self._zs])
 
     @property
     def messages(self):
         """The current messages (B, N, dm) of an MP-NODE (in the model's own units: messages
-        have no physical ones), a copy; None for kinds without messages (l2s, node)."""
+        have no physical ones), a copy; an ensemble's (K, B, N, dm); None for kinds without
+        messages (l2s, node)."""
         self._require_reset()
         spec = self.model.spec
         if spec.kind != "mpnode":
             return None
-        return self._z[:, spec.state_dim:].reshape(self._shape[:2] + (spec.message_dim,)).copy()
+        out = [z[:, spec.state_dim:].reshape(self._shape[:2] + (spec.message_dim,)).copy() for z in self._zs]
+        return out[0] if len(out) == 1 else np.stack(out)
 
     def _controls(self, u, where):
         """u (B, N, du) in data units as the engine takes it: normalised, flat (B*N, du); None
@@ -164,8 +190,17 @@ class Simulator:
             raise InputError(where, "u", f"has shape {u.shape} and dtype {u.dtype}", f"finite numbers of shape {want}")
         return self.model.normalize_u(u).reshape(-1, spec.control_dim)
 
+    @property
+    def _z(self):
+        """The first (for one model: the) member's integrated state (B*N, dx+dm)."""
+        return None if self._zs is None else self._zs[0]
+
+    @_z.setter
+    def _z(self, z):
+        self._zs = [z] if self._zs is None else [z] + self._zs[1:]
+
     def _require_reset(self):
-        if self._z is None:
+        if self._zs is None:
             raise RuntimeError("call reset(x0) first")
 
 

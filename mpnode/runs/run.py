@@ -132,6 +132,7 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     datasets = [t.with_hidden_dims(latent) for t in datasets]
     options, chosen = with_recipe(options, recipe_name, datasets)
     model_config, config = split_options(options)
+    one_model(config)
     names = list(map(str, names or paths))
     data = TrainingData(datasets, config, names)
     model = None if resume else new_model(data, model_config, config)
@@ -167,6 +168,9 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=None, recipe
     if resume:
         check_resume_options(state_path(output), options)
     model = None if resume else Model.load(model_path)
+    if hasattr(model, "members"):
+        raise InputError(model_path, "ensemble_size", f"is an ensemble of {model.size} models",
+                         "mpnode.runs.ensemble.train_ensemble (the command line: finetune --ensemble K)")
     if model is not None:
         datasets = [model.fitted(t) for t in datasets]
     if not resume:
@@ -176,6 +180,7 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=None, recipe
         if warning and notify:
             notify(f"warning: {warning}")
     model_config, config = split_options({"norm": "keep", **options})
+    one_model(config)
     if model is not None and "substeps" in options:
         model = model.with_spec(substeps=model_config.substeps)
     names = list(map(str, names or paths))
@@ -194,6 +199,14 @@ def with_ranges(result, datasets, output):
     saved.attrs[RANGES] = seen
     saved.save(output)
     return result
+
+
+def one_model(config):
+    """InputError for ``ensemble`` > 1: `train` and `finetune` make one model (a sweep key or an
+    options dict asking for more would otherwise be dropped silently)."""
+    if config.ensemble > 1:
+        raise InputError("options", "ensemble", f"is {config.ensemble}", "1 here; K members into one file: "
+                         "mpnode.runs.ensemble.train_ensemble (mpnode train --ensemble K)")
 
 
 def _arguments(where, paths, output, options, resume):

@@ -64,9 +64,9 @@ def split_by_graphs(graph_index, n_graphs, val_graphs, seed, file_index=0):
 
 
 def split_settings(config):
-    """What decides the split, the noise and the shuffles: two configurations that agree on it
-    see the same data."""
-    return (config.seed, config.val_split, config.val_graphs, config.noise)
+    """What decides the split, the noise, the resample and the shuffles: two configurations that
+    agree on it see the same data."""
+    return (config.seed, config.split_by, config.val_split, config.val_graphs, config.noise, config.bootstrap)
 
 
 def make_split(datasets, config):
@@ -75,10 +75,17 @@ def make_split(datasets, config):
     out = []
     for f, traj in enumerate(datasets):
         if config.val_graphs and len(traj.graphs) > config.val_graphs:
-            out.append(split_by_graphs(traj.graph_index, len(traj.graphs), config.val_graphs, config.seed, f)[:2])
+            out.append(split_by_graphs(traj.graph_index, len(traj.graphs), config.val_graphs, config.split_by, f)[:2])
         else:
-            out.append(split_indices(traj.n_trajectories, config.val_split, config.seed, f))
+            out.append(split_indices(traj.n_trajectories, config.val_split, config.split_by, f))
     return out
+
+
+def bootstrap_sample(train, seed, file_index=0):
+    """As many of the training trajectories ``train`` as there are, drawn with replacement (an
+    ensemble member's resample: members that see different data disagree where data are thin)."""
+    rng = np.random.default_rng([seed, 6, file_index])
+    return np.sort(rng.choice(train, size=len(train), replace=True)).astype(np.int64)
 
 
 def fit_normalization(arrays):
@@ -199,7 +206,7 @@ class TrainingData:
             raise InputError("training data", "files", "none given", "at least one trajectory file")
         self.sources = list(sources or [f"data[{i}]" for i in range(len(self.datasets))])
         check_same_kind(self.datasets, self.sources)
-        self.seed, self.noise = config.seed, config.noise
+        self.seed, self.noise, self.bootstrap = config.seed, config.noise, config.bootstrap
         self.split_settings = split_settings(config)
         self.split = make_split(self.datasets, config)
         self.fingerprint = fingerprint(self.datasets)
@@ -246,7 +253,9 @@ class TrainingData:
         """(train parts, val parts) of every file, normalised with ``model``'s constants after
         ``norm`` set them: "fit" (the training split's), "refit" (the same, the weights changed
         so that the model computes what it did: mpnode.model.renormalise) or "keep".
-        Modifies ``model`` unless "keep"; files without validation trajectories have no val part."""
+        Modifies ``model`` unless "keep"; files without validation trajectories have no val part.
+        With ``bootstrap``, each file's training part is a resample of its training trajectories
+        (the normalisation stays the whole training split's)."""
         if norm in ("fit", "refit"):
             x_mean, x_std, u_mean, u_std = self.normalization()
             if u_mean is None:
@@ -257,7 +266,8 @@ class TrainingData:
         train, val = [], []
         for f, (traj, (tr, va)) in enumerate(zip(self.datasets, self.split)):
             rng = np.random.default_rng([self.seed, 3, f])
-            train.append(Part.of_file(traj, tr, model, self.noise, rng, self.sources[f]))
+            drawn = bootstrap_sample(tr, self.seed, f) if self.bootstrap and len(tr) else tr
+            train.append(Part.of_file(traj, drawn, model, self.noise, rng, self.sources[f]))
             if len(va):
                 val.append(Part.of_file(traj, va, model, source=self.sources[f]))
         return train, val

@@ -3,7 +3,7 @@ and its checks (the command line's training flags and the sweep's keys are these
 import math
 from dataclasses import dataclass
 
-from mpnode.base.arguments import check_int, check_number
+from mpnode.base.arguments import check_bool, check_int, check_number
 from mpnode.base.errors import InputError
 from mpnode.base.options import option
 
@@ -55,6 +55,9 @@ class TrainConfig:
     curriculum_epochs: int = 100
     schedule: str = "plateau"
     val_graphs: int = 0
+    ensemble: int = 1
+    bootstrap: bool = False
+    split_seed: int = None
     input_noise: float = 0.0
     train_window: int = 0
 
@@ -104,14 +107,24 @@ class TrainConfig:
             bad("schedule", f"is {self.schedule!r}", " or ".join(SCHEDULES))
         if self.val_graphs < 0:
             bad("val_graphs", f"is {self.val_graphs}", "an integer >= 0")
+        if self.ensemble < 1:
+            bad("ensemble", f"is {self.ensemble}", "an integer >= 1 (the number of members; 1: one model)")
         return self
+
+    @property
+    def split_by(self):
+        """The seed of the train/validation split: ``split_seed``, or the run's seed."""
+        return self.seed if self.split_seed is None else self.split_seed
 
     def _check_types(self):
         """Every option of the right type and sign (the ranges that need more are checked in `check`)."""
         where = "training options"
         for name in ("epochs", "batch_size", "patience", "max_bad_steps", "seed", "curriculum_epochs", "val_graphs",
-                     "train_window"):
+                     "ensemble", "train_window"):
             setattr(self, name, check_int(getattr(self, name), where, name, 0))
+        if self.split_seed is not None:
+            self.split_seed = check_int(self.split_seed, where, "split_seed", 0)
+        self.bootstrap = check_bool(self.bootstrap, where, "bootstrap")
         for name in ("lr", "beta1", "beta2", "eps", "clip", "val_split", "noise", "input_noise", "lr_decay", "min_lr",
                      "blowup", "checkpoint_seconds"):
             setattr(self, name, check_number(getattr(self, name), where, name, least=0))
