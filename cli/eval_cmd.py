@@ -285,10 +285,8 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     Error: normalised MSE (squared error / per-dimension variance of DATA's true
     states) per step and averaged over steps 1..T, the last step's, and the first
     step where a prediction became non-finite or left ten times the data's range.
-    Beside it, the error of holding every state at its initial value (the simplest
-    forecast) and the first step where the model is not below it; when DATA names a
-    group for each state dimension (attribute state_groups, e.g. position, attitude,
-    velocity and body rates of the quadrotors), the error of each group too.
+    Beside it, holding every state at its initial value and the first step the model is not
+    below that; each state group's error when DATA names groups (attribute state_groups).
     Predictable horizon: per trajectory the first step whose normalised MSE exceeds
     0.1 and 1.0, reported as the median over trajectories (in steps and time).
     Speed: rollout wall time and node-steps per second.  Speed against error, when DATA
