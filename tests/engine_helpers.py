@@ -83,6 +83,17 @@ def random_theta(rng, spec, scale=1.0, dtype=np.float64):
 AGGREGATION_OPTIONS = ("aggregation", "linear_aggregate", "linear_aggregation", "linear_target", "mean_degree")
 
 
+def random_model(options, dx, du, dtype, seed=0):
+    """A Model of ``options`` (FieldSpec fields) with random weights, non-zero biases, W_agg too,
+    normalisation constants that are not 0/1, and two substeps."""
+    from mpnode.model import Model
+
+    rng = np.random.default_rng(seed)
+    spec = spec_(state_dim=dx, control_dim=du, hidden=8, dt=0.1, substeps=2, **{"message_dim": 0, **options})
+    return Model(random_theta(rng, spec, dtype=dtype), spec, x_mean=rng.standard_normal(dx),
+                 x_std=1 + rng.random(dx), u_mean=rng.standard_normal(du), u_std=1 + rng.random(du))
+
+
 def spec_(**kw):
     """A FieldSpec of small sizes; the aggregation may be given as the model options (flat)."""
     agg = {k: kw.pop(k) for k in AGGREGATION_OPTIONS if k in kw and not isinstance(kw[k], Aggregation)}

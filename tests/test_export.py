@@ -10,10 +10,10 @@ import sys
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from engine_helpers import make_graph, random_theta, spec_
+from engine_helpers import make_graph, random_model
 
 from cli.main import main
-from mpnode import Model, Simulator, write_trajectories
+from mpnode import Simulator, write_trajectories
 from mpnode.data import Trajectories
 from mpnode.export import write_numpy_module
 
@@ -33,11 +33,7 @@ KINDS = {
 
 
 def make_model(name, du, dtype, seed=0):
-    """Random weights (W_agg too) and normalisation constants that are not 0/1, two substeps."""
-    rng = np.random.default_rng(seed)
-    spec = spec_(state_dim=DX, control_dim=du, hidden=8, dt=0.1, substeps=2, **{"message_dim": 0, **KINDS[name]})
-    return Model(random_theta(rng, spec, dtype=dtype), spec, x_mean=rng.standard_normal(DX),
-                 x_std=1 + rng.random(DX), u_mean=rng.standard_normal(du), u_std=1 + rng.random(du))
+    return random_model(KINDS[name], DX, du, dtype, seed)
 
 
 def graph():

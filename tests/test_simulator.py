@@ -4,9 +4,9 @@ the messages it shows are the integrated ones; its errors say what to fix."""
 import networkx as nx
 import numpy as np
 import pytest
-from engine_helpers import make_graph, random_theta, rollout_ref, spec_
+from engine_helpers import make_graph, random_model, rollout_ref
 
-from mpnode import InputError, Model, Simulator
+from mpnode import InputError, Simulator
 from mpnode.base.graph import Graph
 from mpnode.engine import numpy_path as numpy_engine
 
@@ -21,11 +21,7 @@ KINDS = {
 
 
 def make_model(name, du, dtype, seed=0):
-    """Random weights with non-zero biases, and normalisation constants that are not 0/1."""
-    rng = np.random.default_rng(seed)
-    spec = spec_(state_dim=DX, control_dim=du, hidden=8, dt=0.1, substeps=2, **{"message_dim": 0, **KINDS[name]})
-    return Model(random_theta(rng, spec, dtype=dtype), spec, x_mean=rng.standard_normal(DX),
-                 x_std=1 + rng.random(DX), u_mean=rng.standard_normal(du), u_std=1 + rng.random(du))
+    return random_model(KINDS[name], DX, du, dtype, seed)
 
 
 def graph():

@@ -15,23 +15,15 @@ and 1..4T, at step 4T, their ratio to the baseline's, the best epoch and the sec
 import argparse
 import json
 import statistics
-import subprocess
-import sys
 from pathlib import Path
+
+from imperfect_data import mpnode  # the same runner: mpnode's command line, under the lock if given
 
 SYSTEMS = {"coupled_pendulum": "coupled_pendulum", "lorenz3": "lorenz3", "kuramoto10": "kuramoto10_er",
            "gene16": "gene16_er"}
 #: label -> train flags added to the recipe's
 VARIANTS = {"baseline": [], "noise0.05": ["--input-noise", "0.05"], "window25": ["--train-window", "25"]}
 HORIZON = 50
-
-
-def mpnode(*args, lock=None):
-    cmd = (["flock", str(lock)] if lock else []) + ["mpnode", *map(str, args)]
-    out = subprocess.run(cmd, capture_output=True, text=True, check=False)
-    if out.returncode:
-        sys.exit(f"{' '.join(cmd)} failed ({out.returncode}):\n{out.stderr[-2000:]}")
-    return out.stdout
 
 
 def data(folder, system, trajectories, seed, horizon):
