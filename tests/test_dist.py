@@ -345,6 +345,12 @@ def test_test_points_on_dask(data, farm, tmp_path):
     check_points(records, tmp_path)
 
 
+def _default_sigint():
+    """The command starts as from a terminal, Ctrl-C not ignored: an ignored SIGINT would be
+    inherited from whatever the test process last did with it, and Python keeps it ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("stop", [signal.SIGKILL, signal.SIGINT], ids=["killed", "ctrl-c"])
 def test_a_stopped_sweep_resumes_its_half_finished_training(data, tmp_path, stop):
     """Killed mid-training (the command and its pool process at once), or stopped by Ctrl-C, a
@@ -358,7 +364,8 @@ def test_a_stopped_sweep_resumes_its_half_finished_training(data, tmp_path, stop
             "--scheduler", "none", "--workers", "1"]
     folder = out / "runs" / "long"
     log, state = folder / "model.h5.log.jsonl", state_path(folder / "model.h5")
-    proc = subprocess.Popen(args, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(args, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            preexec_fn=_default_sigint)
     try:
         deadline = time.monotonic() + 180
         while time.monotonic() < deadline and proc.poll() is None:  # past the first test point (epoch 2000)
