@@ -34,18 +34,29 @@ def one_line(e):
     return " ".join(str(e).split())
 
 
-def file_format(path):
-    """The root attribute ``format`` of an HDF5 file ("mpnode.trajectories", "mpnode.model", ...),
-    or None when it has none; InputError when the file cannot be opened."""
+def open_h5(path, kind="mpnode file"):
+    """``path`` opened for reading (an h5py.File); InputError naming the file when it is missing or
+    not HDF5, and the system's refusal (permission, ...) as its FileSystemError.
+    kind : what the file should be, for the fix ("trajectory file", "model file", ...)."""
     import h5py
+
+    from .oserrors import file_error, refused
 
     source = os.fspath(path)
     try:
-        with h5py.File(source, "r") as f:
-            fmt = plain_attr(f.attrs.get("format"))
+        return h5py.File(source, "r")
     except FileNotFoundError:
-        raise InputError(source, "file", "does not exist", "an existing mpnode file") from None
+        raise InputError(source, "file", "does not exist", f"an existing {kind}") from None
     except H5_DAMAGE as e:
+        if refused(e):
+            raise file_error(e, source, "read") from None
         raise InputError(source, "file", f"cannot be opened as HDF5 ({one_line(e)})",
-                         "an HDF5 file (not truncated, not another format)") from None
+                         f"an HDF5 {kind} (not truncated, not another format)") from None
+
+
+def file_format(path):
+    """The root attribute ``format`` of an HDF5 file ("mpnode.trajectories", "mpnode.model", ...),
+    or None when it has none; InputError when the file cannot be opened."""
+    with open_h5(path) as f:
+        fmt = plain_attr(f.attrs.get("format"))
     return fmt if isinstance(fmt, str) else None

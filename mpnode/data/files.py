@@ -13,8 +13,7 @@ from mpnode.base.arguments import check_path
 from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph
-from mpnode.base.h5 import H5_DAMAGE, one_line, plain_attr
-from mpnode.base.oserrors import file_error, refused
+from mpnode.base.h5 import H5_DAMAGE, one_line, open_h5, plain_attr
 
 from .rules import RESERVED_ATTRS, needs_version_2, storable_text, validate_trajectories
 from .trajectories import Trajectories
@@ -34,18 +33,8 @@ def read_trajectories(path):
     x and u keep their stored precision (float32 or float64, native byte order);
     graph_index is int64 and is all zeros when the file has one graph and omits it.
     """
-    import h5py
-
     source = check_path(path, "read_trajectories")
-    try:
-        f = h5py.File(source, "r")
-    except FileNotFoundError:
-        raise InputError(source, "file", "does not exist", "an existing trajectory file") from None
-    except H5_DAMAGE as e:
-        if refused(e):
-            raise file_error(e, source, "read") from None
-        raise InputError(source, "file", f"cannot be opened as HDF5 ({one_line(e)})",
-                         "an HDF5 trajectory file (not truncated, not another format)") from None
+    f = open_h5(source, "trajectory file")
     try:
         with f:
             traj, version = _read_open_file(f, source)

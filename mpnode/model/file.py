@@ -9,8 +9,7 @@ import numpy as np
 
 from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
-from mpnode.base.h5 import H5_DAMAGE, plain_attr
-from mpnode.base.oserrors import file_error, refused
+from mpnode.base.h5 import H5_DAMAGE, open_h5, plain_attr
 from mpnode.engine import layouts
 from mpnode.engine.spec import AGGREGATIONS, KINDS, LINEAR_TARGETS, FieldSpec, default_aggregation
 
@@ -142,16 +141,7 @@ def read_model(path):
     """What ``path`` holds: {spec, theta, x_mean, x_std, u_mean, u_std, attrs} (the arguments of
     mpnode.model.Model); for an ensemble theta is (K, P) and ``ensemble`` holds its arrays
     (ENSEMBLE_ARRAYS).  InputError(path, field, ...) for anything off-format."""
-    import h5py
-
-    try:
-        f = h5py.File(path, "r")
-    except FileNotFoundError:
-        raise InputError(path, "file", "does not exist", "a model file written by `mpnode train`") from None
-    except H5_DAMAGE as e:
-        if refused(e):
-            raise file_error(e, path, "read") from None
-        raise InputError(path, "file", f"is not a readable HDF5 file ({e})", "an mpnode model file") from None
+    f = open_h5(path, "model file (written by `mpnode train`)")
     try:
         with f:
             attrs = _Attrs(f, path)
