@@ -238,9 +238,9 @@ def _mlp_sweeps_kernel():
             for k in prange(ntiles):
                 i0 = k * 256
                 i1 = min(M, i0 + 256)
-                H1 = np.empty((i1 - i0, H), V.dtype)
-                H2 = np.empty((i1 - i0, H), V.dtype)
-                mlp_forward(theta, V[i0:i1], H1, H2, dz)
+                H1T = np.empty((H, i1 - i0), V.dtype)
+                H2T = np.empty((H, i1 - i0), V.dtype)
+                mlp_forward(theta, V[i0:i1].reshape(dz, i1 - i0), H1T, H2T, dz)  # feature-major tile
 
     return sweeps
 

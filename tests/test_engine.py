@@ -33,7 +33,7 @@ from mpnode.base.graph import Graph, block_diagonal
 from mpnode.engine import FieldSpec, kernels
 from mpnode.engine import numpy_path as numpy_engine
 from mpnode.engine import plan as engine_plan
-from mpnode.engine.kernels import mpnode_field
+from mpnode.engine.kernels import feature_major, mpnode_field
 from mpnode.training import losses
 
 # ---------------------------------------------------------------------------
@@ -104,31 +104,47 @@ def test_dense_vjp_matches_finite_differences():
 
 
 def test_mlp_vjp_matches_finite_differences():
+    """The MLP on a feature-major tile (columns are nodes): values and every cotangent."""
     rng = np.random.default_rng(2)
     n, din, H, dout = 6, 5, 7, 4
     spec = FieldSpec(state_dim=2, control_dim=1, message_dim=2, hidden=H, dt=0.1)  # din = 2+1+2 = 5, dout = 2+2 = 4
     theta = random_theta(rng, spec, scale=1.5)
-    V = rng.standard_normal((n, din))
-    GK = rng.standard_normal((n, dout))
+    VT = rng.standard_normal((din, n))
+    GKT = rng.standard_normal((dout, n))
 
     def f():
-        H1, H2 = np.empty((n, H)), np.empty((n, H))
-        return np.sum(GK * mpnode_field.mlp_forward(theta, V, H1, H2, dout))
+        H1T, H2T = np.empty((H, n)), np.empty((H, n))
+        return np.sum(GKT * mpnode_field.mlp_forward(theta, VT, H1T, H2T, dout))
 
-    H1, H2 = np.empty((n, H)), np.empty((n, H))
-    K = mpnode_field.mlp_forward(theta, V, H1, H2, dout)
+    H1T, H2T = np.empty((H, n)), np.empty((H, n))
+    KT = mpnode_field.mlp_forward(theta, VT, H1T, H2T, dout)
     p = params(spec, theta)
-    np.testing.assert_allclose(K, numpy_engine.mlp(p, V), rtol=1e-12, atol=1e-13)
-    np.testing.assert_allclose(H1, np.tanh(V @ p["W1"] + p["b1"]), rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(KT.T, numpy_engine.mlp(p, VT.T), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(H1T.T, np.tanh(VT.T @ p["W1"] + p["b1"]), rtol=1e-13, atol=1e-14)
     gtheta0 = rng.standard_normal(theta.size)
     gtheta = gtheta0.copy()
-    GV = mpnode_field.mlp_backward(theta, V, H1, H2, GK.copy(), gtheta)
-    fV, ftheta = fd_grad(f, [V, theta])
-    assert rel(GV, fV) < 1e-6
+    GVT = mpnode_field.mlp_backward(theta, VT, H1T, H2T, GKT.copy(), gtheta)
+    fV, ftheta = fd_grad(f, [VT, theta])
+    assert rel(GVT, fV) < 1e-6
     g = gtheta - gtheta0
     # every parameter block on its own (W1 b1 W2 b2 W3 b3), not only the whole vector
     for name, blk in params(spec, g).items():
         assert rel(blk, params(spec, ftheta)[name]) < 1e-6, name
+
+
+@pytest.mark.parametrize("a", [1, 5, 6, 13, 32, 37, 64, 70])
+def test_feature_major_product_every_width(a):
+    """The product's chunks (32, 16, ..., 1) cover any input width, with or without a bias,
+    with the weights given transposed (as the backward pass does)."""
+    rng = np.random.default_rng(a)
+    n, c = 19, 11
+    W, b, XT = rng.standard_normal((a, c)), rng.standard_normal(c), rng.standard_normal((a, n))
+    YT = np.empty((c, n))
+    feature_major.product(W, b, XT, YT)
+    np.testing.assert_allclose(YT, W.T @ XT + b[:, None], rtol=1e-12, atol=1e-12)
+    WT = rng.standard_normal((c, a))
+    feature_major.product(WT.T, b[:0], XT, YT)
+    np.testing.assert_allclose(YT, WT @ XT, rtol=1e-12, atol=1e-12)
 
 
 # ---------------------------------------------------------------------------

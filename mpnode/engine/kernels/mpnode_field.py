@@ -15,14 +15,8 @@ import numpy as np
 from numba import njit
 
 from ..dims import DM, DU, DX, HIDDEN, LINEAR, LINEAR_OWN, LINEAR_STATE, SELF_MSG, ZERO_MSG
-from .layers import (
-    JIT,
-    aggregate_tile,
-    dense_backward,
-    dense_forward,
-    dense_tanh_backward,
-    dense_tanh_forward,
-)
+from .feature_major import dense_tanh_forward, param_cotangent, product, tanh_cotangent
+from .layers import JIT, aggregate_tile
 
 
 @njit(**JIT)
@@ -52,92 +46,131 @@ def unpack_agg(theta, din, H, dout, dm, ncol):
 
 
 @njit(**JIT)
-def linear_input(V, c, weight, own, i0):
-    """The linear path's input for rows i0..: V[:, c:] (the MLP's aggregate), each row r
-    times weight[M + i0 + r] when the path has its ``own`` aggregation (M = weight.size / 2)."""
-    Va = np.ascontiguousarray(V[:, c:])
-    if own:
-        off = weight.shape[0] // 2 + i0
-        for r in range(Va.shape[0]):
-            Va[r] *= weight[off + r]
-    return Va
+def feature_major(A):
+    """The (w, n) feature-major view of a tile's (n, w) cache rows (the same memory)."""
+    return A.reshape(A.shape[1], A.shape[0])
 
 
 @njit(**JIT)
-def linear_aggregate_forward(Wa, V, c, weight, own, i0, K):
-    """K[:, :ncol] += A Wa (ncol = Wa's columns), A = linear_input(...): the aggregate's path
+def transpose_into(A, B):
+    """B (w, n) = A (n, w)^T."""
+    for d in range(B.shape[0]):
+        for r in range(B.shape[1]):
+            B[d, r] = A[r, d]
+
+
+@njit(**JIT)
+def linear_input(VT, c, weight, own, i0):
+    """The linear path's input for rows i0..: VT[c:] (the MLP's aggregate, feature-major), each
+    node r times weight[M + i0 + r] when the path has its ``own`` aggregation (M = weight.size / 2)."""
+    AT = VT[c:].copy()
+    if own:
+        off = weight.shape[0] // 2 + i0
+        for d in range(AT.shape[0]):
+            for r in range(AT.shape[1]):
+                AT[d, r] *= weight[off + r]
+    return AT
+
+
+@njit(**JIT)
+def linear_aggregate_forward(Wa, VT, c, weight, own, i0, KT):
+    """KT[:ncol] += Wa^T A (ncol = Wa's columns), A = linear_input(...): the aggregate's path
     around the MLP (whose tanh units cannot follow the larger aggregates of denser graphs;
     the gene dynamics are linear in them)."""
-    K[:, :Wa.shape[1]] += np.dot(linear_input(V, c, weight, own, i0), Wa)
+    ncol = Wa.shape[1]
+    PT = np.empty((ncol, VT.shape[1]), VT.dtype)
+    product(Wa, Wa[0, :0], linear_input(VT, c, weight, own, i0), PT)
+    KT[:ncol] += PT
 
 
 @njit(**JIT)
-def linear_aggregate_backward(Wa, V, c, weight, own, i0, GK, gWa, GV):
-    """VJP of linear_aggregate_forward: gWa += A^T G, GV[:, c:] += s * (G Wa^T), G = GK[:, :ncol]."""
-    G = np.ascontiguousarray(GK[:, :Wa.shape[1]])
-    gWa += np.dot(linear_input(V, c, weight, own, i0).T, G)
-    GA = np.dot(G, Wa.T)
+def linear_aggregate_backward(Wa, VT, c, weight, own, i0, GKT, gWa, GVT):
+    """VJP of linear_aggregate_forward: gWa += A G^T, GVT[c:] += s * (Wa G), G = GKT[:ncol]."""
+    GT = GKT[:Wa.shape[1]]
+    param_cotangent(linear_input(VT, c, weight, own, i0), GT, gWa, Wa[0, :0])
+    GAT = np.empty((Wa.shape[0], GT.shape[1]), GT.dtype)
+    product(Wa.T, Wa[0, :0], GT, GAT)
     if own:
         off = weight.shape[0] // 2 + i0
-        for r in range(GA.shape[0]):
-            GA[r] *= weight[off + r]
-    GV[:, c:] += GA
+        for d in range(GAT.shape[0]):
+            for r in range(GAT.shape[1]):
+                GAT[d, r] *= weight[off + r]
+    GVT[c:] += GAT
 
 
 @njit(**JIT)
-def mlp_forward(theta, V, H1, H2, dout):
-    """K = W3^T tanh(W2^T tanh(W1^T v + b1) + b2) + b3 per row v of V; keeps H1, H2."""
-    W1, b1, W2, b2, W3, b3 = unpack(theta, V.shape[1], H1.shape[1], dout)
-    dense_tanh_forward(V, W1, b1, H1)
-    dense_tanh_forward(H1, W2, b2, H2)
-    return dense_forward(H2, W3, b3)
+def mlp_forward(theta, VT, H1T, H2T, dout):
+    """KT (dout, n) = W3^T tanh(W2^T tanh(W1^T v + b1) + b2) + b3 per column v of VT; keeps H1T, H2T."""
+    W1, b1, W2, b2, W3, b3 = unpack(theta, VT.shape[0], H1T.shape[0], dout)
+    dense_tanh_forward(VT, W1, b1, H1T)
+    dense_tanh_forward(H1T, W2, b2, H2T)
+    KT = np.empty((dout, VT.shape[1]), VT.dtype)
+    product(W3, b3, H2T, KT)
+    return KT
 
 
 @njit(**JIT)
-def mlp_backward(theta, V, H1, H2, GK, gtheta):
-    """VJP of mlp_forward: returns GV (n, din); adds the parameter cotangents into gtheta."""
-    din, Hd, dout = V.shape[1], H1.shape[1], GK.shape[1]
+def mlp_backward(theta, VT, H1T, H2T, GKT, gtheta):
+    """VJP of mlp_forward: returns GVT (din, n); adds the parameter cotangents into gtheta."""
+    din, Hd, dout = VT.shape[0], H1T.shape[0], GKT.shape[0]
     W1, b1, W2, b2, W3, b3 = unpack(theta, din, Hd, dout)
     gW1, gb1, gW2, gb2, gW3, gb3 = unpack(gtheta, din, Hd, dout)
-    GH2 = dense_backward(H2, W3, GK, gW3, gb3)
-    GH1 = dense_tanh_backward(H1, W2, H2, GH2, gW2, gb2)
-    return dense_tanh_backward(V, W1, H1, GH1, gW1, gb1)
+    none = b1[:0]
+    n = VT.shape[1]
+    param_cotangent(H2T, GKT, gW3, gb3)
+    GH2T = np.empty((Hd, n), VT.dtype)
+    product(W3.T, none, GKT, GH2T)
+    tanh_cotangent(H2T, GH2T)
+    param_cotangent(H1T, GH2T, gW2, gb2)
+    GH1T = np.empty((Hd, n), VT.dtype)
+    product(W2.T, none, GH2T, GH1T)
+    tanh_cotangent(H1T, GH1T)
+    param_cotangent(VT, GH1T, gW1, gb1)
+    GVT = np.empty((din, n), VT.dtype)
+    product(W1.T, none, GH1T, GVT)
+    return GVT
 
 
 @njit(**JIT)
 def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc, mcol0):
-    """k = F(zin) for nodes i0..i1: returns K (n, dz); V, H1, H2 (this tile's rows) keep the
-    MLP's inputs and activations for the VJP.  ``sums``: dense-path row sums or empty.
-    The neighbours' messages are read from msrc[:, mcol0:mcol0+dm]: zin itself (mcol0 = dx),
-    or a compact copy of its message columns (mcol0 = 0; half the memory a gather touches)."""
+    """k = F(zin) for nodes i0..i1: returns K (n, dz); V, H1, H2 (this tile's cache rows, used
+    feature-major) keep the MLP's inputs and activations for the VJP.  ``sums``: dense-path
+    row sums or empty.  The neighbours' messages are read from msrc[:, mcol0:mcol0+dm]: zin
+    itself (mcol0 = dx), or a compact copy of its message columns (mcol0 = 0; half the memory
+    a gather touches)."""
     dx, du, dm, H = dims[DX], dims[DU], dims[DM], dims[HIDDEN]
     self_msg, zero_msg, linear_agg = dims[SELF_MSG], dims[ZERO_MSG], dims[LINEAR]
     indptr, indices, weight = graph
+    n = i1 - i0
     c = dx + du
-    for r in range(i1 - i0):
-        zi = i0 + r - zoff
-        for d in range(dx):
-            V[r, d] = zin[zi, d]
-        for d in range(du):
-            V[r, dx + d] = u[i0 + r, d]
+    VT = feature_major(V)
+    for d in range(dx):
+        for r in range(n):
+            VT[d, r] = zin[i0 + r - zoff, d]
+    for d in range(du):
+        for r in range(n):
+            VT[dx + d, r] = u[i0 + r, d]
     if zero_msg:
-        V[:, c:] = 0
+        VT[c:] = 0
     else:
-        aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, V, c)
-    K = mlp_forward(theta, V, H1, H2, dx + dm)
+        agg = np.empty((n, dm), V.dtype)
+        aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, agg, 0)
+        transpose_into(agg, VT[c:])
+    KT = mlp_forward(theta, VT, feature_major(H1), feature_major(H2), dx + dm)
     if linear_agg:
         ncol = dx if linear_agg & LINEAR_STATE else dx + dm
-        linear_aggregate_forward(unpack_agg(theta, c + dm, H, dx + dm, dm, ncol), V, c, weight,
-                                 (linear_agg & LINEAR_OWN) != 0,
-                                 i0, K)
+        linear_aggregate_forward(unpack_agg(theta, c + dm, H, dx + dm, dm, ncol), VT, c, weight,
+                                 (linear_agg & LINEAR_OWN) != 0, i0, KT)
     if zero_msg:
-        K[:, dx:] = 0
+        KT[dx:] = 0
+    K = np.empty((n, dx + dm), V.dtype)
+    transpose_into(KT, K)
     return K
 
 
 @njit(**JIT)
 def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gin, gagg, gu):
-    """VJP of update_tile for the cotangent GK of k (overwritten).
+    """VJP of update_tile for the cotangent GK (n, dz) of k.
 
     Writes the x part of the input's cotangent into gin[:, :dx] and each node's weighted
     aggregate cotangent into gagg (rows ``i - zoff``), which the transpose of the neighbour
@@ -146,24 +179,28 @@ def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gi
     """
     dx, du, dm, H = dims[DX], dims[DU], dims[DM], dims[HIDDEN]
     zero_msg, linear_agg = dims[ZERO_MSG], dims[LINEAR]
+    n = i1 - i0
+    GKT = np.empty((GK.shape[1], n), GK.dtype)
+    transpose_into(GK, GKT)
     if zero_msg:
-        GK[:, dx:] = 0
-    GV = mlp_backward(theta, V, H1, H2, GK, gtheta)  # GK is left as it was given
+        GKT[dx:] = 0
+    VT = feature_major(V)
+    GVT = mlp_backward(theta, VT, feature_major(H1), feature_major(H2), GKT, gtheta)
     c = dx + du
-    if linear_agg:  # before the aggregate's cotangent is read out of GV below
+    if linear_agg:  # before the aggregate's cotangent is read out of GVT below
         din, dout = c + dm, dx + dm
         ncol = dx if linear_agg & LINEAR_STATE else dout
-        linear_aggregate_backward(unpack_agg(theta, din, H, dout, dm, ncol), V, c, weight,
+        linear_aggregate_backward(unpack_agg(theta, din, H, dout, dm, ncol), VT, c, weight,
                                   (linear_agg & LINEAR_OWN) != 0, i0,
-                                  GK, unpack_agg(gtheta, din, H, dout, dm, ncol), GV)
-    for r in range(i1 - i0):
+                                  GKT, unpack_agg(gtheta, din, H, dout, dm, ncol), GVT)
+    for r in range(n):
         i = i0 + r
         zi = i - zoff
         for d in range(dx):
-            gin[zi, d] = GV[r, d]
+            gin[zi, d] = GVT[d, r]
         if gu.shape[0] > 0:
             for d in range(du):
-                gu[i, d] += GV[r, dx + d]
+                gu[i, d] += GVT[dx + d, r]
         w = weight.dtype.type(0) if zero_msg else weight[i]
         for d in range(dm):
-            gagg[zi, d] = GV[r, c + d] * w
+            gagg[zi, d] = GVT[c + d, r] * w

@@ -1,0 +1,122 @@
+"""Dense layers on feature-major tiles: a tile's activations are (width, n) arrays.
+
+With the nodes along the contiguous axis every product vectorises over nodes, and the sum
+over the layer's inputs is unrolled at compile time: one compiled kernel per chunk width
+(32, 16, 8, 4, 2, 1), an input width being the sum of its binary digits.  For each output
+row the running sums of a chunk stay in registers (one FMA per input, the weight broadcast
+from memory) and the row is stored once per chunk; a 32-wide hidden layer is one pass.
+BLAS's small-GEMM calls, which these replace, reached half the machine's rate on the
+model's widths and left the tanh to a second pass over memory
+(docs/evidence/speed.md#the-engine-against-the-flop-floor-and-the-peers).
+"""
+import numpy as np
+from numba import njit
+
+from .layers import JIT, tanh
+
+CHUNKS = (32, 16, 8, 4, 2, 1)
+
+
+def _partial_product(width):
+    """YT[j, :] = (b[j] or YT[j, :]) + sum over k0 <= k < k0 + width of W[k, j] XT[k, :],
+    for every output j; ``width`` is a compile-time constant (the loop over k unrolls)."""
+
+    @njit(**JIT)
+    def partial_product(W, b, XT, k0, YT, first):
+        c, n = YT.shape
+        zero = YT.dtype.type(0)
+        Wk = W[k0:k0 + width]  # views: an offset inside the unrolled loop stops it vectorising
+        Xk = XT[k0:k0 + width]
+        for j in range(c):
+            if first:
+                bj = b[j] if b.shape[0] > 0 else zero
+                for r in range(n):
+                    s = bj
+                    for k in range(width):
+                        s += Wk[k, j] * Xk[k, r]
+                    YT[j, r] = s
+            else:
+                for r in range(n):
+                    s = YT[j, r]
+                    for k in range(width):
+                        s += Wk[k, j] * Xk[k, r]
+                    YT[j, r] = s
+
+    return partial_product
+
+
+_P32, _P16, _P8, _P4, _P2, _P1 = (_partial_product(w) for w in CHUNKS)
+
+
+@njit(**JIT)
+def _chunk(width, W, b, XT, k0, YT, first):
+    if width == 32:
+        _P32(W, b, XT, k0, YT, first)
+    elif width == 16:
+        _P16(W, b, XT, k0, YT, first)
+    elif width == 8:
+        _P8(W, b, XT, k0, YT, first)
+    elif width == 4:
+        _P4(W, b, XT, k0, YT, first)
+    elif width == 2:
+        _P2(W, b, XT, k0, YT, first)
+    else:
+        _P1(W, b, XT, k0, YT, first)
+
+
+@njit(**JIT)
+def product(W, b, XT, YT):
+    """YT (c, n) = W^T XT + b for W (a, c), XT (a, n); b may be empty (no bias).
+
+    ``W`` may be a transposed view (the backward pass multiplies by W itself)."""
+    a = W.shape[0]
+    k0 = 0
+    while k0 < a:
+        width = 32
+        while width > a - k0:
+            width //= 2
+        _chunk(width, W, b, XT, k0, YT, k0 == 0)
+        k0 += width
+
+
+@njit(**JIT)
+def tanh_rows(YT):
+    c, n = YT.shape
+    for j in range(c):
+        for r in range(n):
+            YT[j, r] = tanh(YT[j, r])
+
+
+@njit(**JIT)
+def dense_tanh_forward(XT, W, b, YT):
+    """YT = tanh(W^T XT + b): the hidden layer, feature-major."""
+    product(W, b, XT, YT)
+    tanh_rows(YT)
+
+
+@njit(**JIT)
+def tanh_cotangent(YT, GYT):
+    """GYT *= 1 - YT^2: the cotangent through tanh, from its output."""
+    c, n = YT.shape
+    for j in range(c):
+        for r in range(n):
+            GYT[j, r] *= 1 - YT[j, r] * YT[j, r]
+
+
+@njit(**JIT)
+def param_cotangent(XT, GYT, gW, gb):
+    """gW (a, c) += XT GYT^T and gb (c,) += the rows' sums (gb empty: no bias): a layer's
+    parameter cotangents."""
+    a, n = XT.shape
+    c = GYT.shape[0]
+    for j in range(c if gb.shape[0] > 0 else 0):
+        s = GYT.dtype.type(0)
+        for r in range(n):
+            s += GYT[j, r]
+        gb[j] += s
+    for k in range(a):
+        for j in range(c):
+            s = GYT.dtype.type(0)
+            for r in range(n):
+                s += XT[k, r] * GYT[j, r]
+            gW[k, j] += s
