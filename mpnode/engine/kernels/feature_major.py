@@ -19,28 +19,22 @@ CHUNKS = (32, 16, 8, 4, 2, 1)
 
 def _partial_product(width):
     """YT[j, :] = (b[j] or YT[j, :]) + sum over k0 <= k < k0 + width of W[k, j] XT[k, :],
-    for every output j; ``width`` is a compile-time constant (the loop over k unrolls)."""
+    for every output j, then tanh if ``act``; ``width`` is a compile-time constant (the loop
+    over k unrolls)."""
 
     @njit(**JIT)
-    def partial_product(W, b, XT, k0, YT, first):
+    def partial_product(W, b, XT, k0, YT, first, act):
         c, n = YT.shape
         zero = YT.dtype.type(0)
         Wk = W[k0:k0 + width]  # views: an offset inside the unrolled loop stops it vectorising
         Xk = XT[k0:k0 + width]
         for j in range(c):
-            if first:
-                bj = b[j] if b.shape[0] > 0 else zero
-                for r in range(n):
-                    s = bj
-                    for k in range(width):
-                        s += Wk[k, j] * Xk[k, r]
-                    YT[j, r] = s
-            else:
-                for r in range(n):
-                    s = YT[j, r]
-                    for k in range(width):
-                        s += Wk[k, j] * Xk[k, r]
-                    YT[j, r] = s
+            bj = b[j] if b.shape[0] > 0 else zero
+            for r in range(n):  # the conditions are the same for every r: LLVM hoists them
+                s = bj if first else YT[j, r]
+                for k in range(width):
+                    s += Wk[k, j] * Xk[k, r]
+                YT[j, r] = tanh(s) if act else s
 
     return partial_product
 
@@ -49,49 +43,39 @@ _P32, _P16, _P8, _P4, _P2, _P1 = (_partial_product(w) for w in CHUNKS)
 
 
 @njit(**JIT)
-def _chunk(width, W, b, XT, k0, YT, first):
+def _chunk(width, W, b, XT, k0, YT, first, act):
     if width == 32:
-        _P32(W, b, XT, k0, YT, first)
+        _P32(W, b, XT, k0, YT, first, act)
     elif width == 16:
-        _P16(W, b, XT, k0, YT, first)
+        _P16(W, b, XT, k0, YT, first, act)
     elif width == 8:
-        _P8(W, b, XT, k0, YT, first)
+        _P8(W, b, XT, k0, YT, first, act)
     elif width == 4:
-        _P4(W, b, XT, k0, YT, first)
+        _P4(W, b, XT, k0, YT, first, act)
     elif width == 2:
-        _P2(W, b, XT, k0, YT, first)
+        _P2(W, b, XT, k0, YT, first, act)
     else:
-        _P1(W, b, XT, k0, YT, first)
+        _P1(W, b, XT, k0, YT, first, act)
 
 
 @njit(**JIT)
-def product(W, b, XT, YT):
-    """YT (c, n) = W^T XT + b for W (a, c), XT (a, n); b may be empty (no bias).
-
-    ``W`` may be a transposed view (the backward pass multiplies by W itself)."""
+def product(W, b, XT, YT, act=False):
+    """YT (c, n) = W^T XT + b, then tanh if ``act``, for W (a, c), XT (a, n); b may be
+    empty (no bias).  ``W`` may be a transposed view (the backward pass multiplies by W itself)."""
     a = W.shape[0]
     k0 = 0
     while k0 < a:
         width = 32
         while width > a - k0:
             width //= 2
-        _chunk(width, W, b, XT, k0, YT, k0 == 0)
+        _chunk(width, W, b, XT, k0, YT, k0 == 0, act and k0 + width == a)
         k0 += width
-
-
-@njit(**JIT)
-def tanh_rows(YT):
-    c, n = YT.shape
-    for j in range(c):
-        for r in range(n):
-            YT[j, r] = tanh(YT[j, r])
 
 
 @njit(**JIT)
 def dense_tanh_forward(XT, W, b, YT):
     """YT = tanh(W^T XT + b): the hidden layer, feature-major."""
-    product(W, b, XT, YT)
-    tanh_rows(YT)
+    product(W, b, XT, YT, True)
 
 
 @njit(**JIT)

@@ -133,7 +133,7 @@ def mlp_backward(theta, VT, H1T, H2T, GKT, gtheta):
 
 @njit(**JIT)
 def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc, mcol0):
-    """k = F(zin) for nodes i0..i1: returns K (n, dz); V, H1, H2 (this tile's cache rows, used
+    """k = F(zin) for nodes i0..i1: returns KT (dz, n), feature-major; V, H1, H2 (this tile's cache rows, used
     feature-major) keep the MLP's inputs and activations for the VJP.  ``sums``: dense-path
     row sums or empty.  The neighbours' messages are read from msrc[:, mcol0:mcol0+dm]: zin
     itself (mcol0 = dx), or a compact copy of its message columns (mcol0 = 0; half the memory
@@ -153,9 +153,7 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
     if zero_msg:
         VT[c:] = 0
     else:
-        agg = np.empty((n, dm), V.dtype)
-        aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, agg, 0)
-        transpose_into(agg, VT[c:])
+        aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, VT[c:].T, 0)
     KT = mlp_forward(theta, VT, feature_major(H1), feature_major(H2), dx + dm)
     if linear_agg:
         ncol = dx if linear_agg & LINEAR_STATE else dx + dm
@@ -163,9 +161,7 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
                                  (linear_agg & LINEAR_OWN) != 0, i0, KT)
     if zero_msg:
         KT[dx:] = 0
-    K = np.empty((n, dx + dm), V.dtype)
-    transpose_into(KT, K)
-    return K
+    return KT
 
 
 @njit(**JIT)

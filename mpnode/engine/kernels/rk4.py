@@ -137,12 +137,13 @@ def send_tile(theta, dims, zin, u, i0, i1, zoff, C, slot, r0, r1):
 
 @njit(**JIT)
 def update_tile(theta, dims, zin, u, S, sums, graph, i0, i1, zoff, C, slot, r0, r1):
-    """Phase 3 for nodes i0..i1: k (n, dz).  S: what everyone sent (L2S, rows ``i - zoff``)."""
+    """Phase 3 for nodes i0..i1: k (n, dz) (for the MP-NODE a view of its feature-major
+    result).  S: what everyone sent (L2S, rows ``i - zoff``)."""
     if dims[KIND] == L2S:
         return l2s_field.update_tile(theta, dims, S, sums, graph, i0, i1, zoff, C[1][slot, r0:r1],
                                      C[3][slot, r0:r1], C[4][slot, r0:r1])
     return mpnode_field.update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, C[0][slot, r0:r1],
-                                    C[1][slot, r0:r1], C[2][slot, r0:r1], zin, dims[DX])
+                                    C[1][slot, r0:r1], C[2][slot, r0:r1], zin, dims[DX]).T
 
 
 @njit(**JIT)
@@ -380,7 +381,7 @@ def rollout_stagewise(theta, dims, z0, U, graph, nsub, hstep, out, states, zend)
                         K = l2s_field.update_tile(theta, dims, S, none, graph, i0, i1, 0, H0[i0:i1], C[3][0], C[4][0])
                     else:
                         K = mpnode_field.update_tile(theta, dims, zin, U[t], none, graph, i0, i1, 0, C[0][0],
-                                                     C[1][0], C[2][0], msg, 0)
+                                                     C[1][0], C[2][0], msg, 0).T
                     fold_tile(stage, h, K, z, zout, acc, i0, i1, 0)
                     if kind != L2S:  # the next stage's messages: zout's (stage 3: the new z's)
                         nxt = z if stage == 3 else zout
