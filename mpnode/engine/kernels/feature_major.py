@@ -19,11 +19,10 @@ CHUNKS = (32, 16, 8, 4, 2, 1)
 
 def _partial_product(width):
     """YT[j, :] = (b[j] or YT[j, :]) + sum over k0 <= k < k0 + width of W[k, j] XT[k, :],
-    for every output j, then tanh if ``act``; ``width`` is a compile-time constant (the loop
-    over k unrolls)."""
+    for every output j; ``width`` is a compile-time constant (the loop over k unrolls)."""
 
     @njit(**JIT)
-    def partial_product(W, b, XT, k0, YT, first, act):
+    def partial_product(W, b, XT, k0, YT, first):
         c, n = YT.shape
         zero = YT.dtype.type(0)
         Wk = W[k0:k0 + width]  # views: an offset inside the unrolled loop stops it vectorising
@@ -34,7 +33,7 @@ def _partial_product(width):
                 s = bj if first else YT[j, r]
                 for k in range(width):
                     s += Wk[k, j] * Xk[k, r]
-                YT[j, r] = tanh(s) if act else s
+                YT[j, r] = s
 
     return partial_product
 
@@ -43,19 +42,19 @@ _P32, _P16, _P8, _P4, _P2, _P1 = (_partial_product(w) for w in CHUNKS)
 
 
 @njit(**JIT)
-def _chunk(width, W, b, XT, k0, YT, first, act):
+def _chunk(width, W, b, XT, k0, YT, first):
     if width == 32:
-        _P32(W, b, XT, k0, YT, first, act)
+        _P32(W, b, XT, k0, YT, first)
     elif width == 16:
-        _P16(W, b, XT, k0, YT, first, act)
+        _P16(W, b, XT, k0, YT, first)
     elif width == 8:
-        _P8(W, b, XT, k0, YT, first, act)
+        _P8(W, b, XT, k0, YT, first)
     elif width == 4:
-        _P4(W, b, XT, k0, YT, first, act)
+        _P4(W, b, XT, k0, YT, first)
     elif width == 2:
-        _P2(W, b, XT, k0, YT, first, act)
+        _P2(W, b, XT, k0, YT, first)
     else:
-        _P1(W, b, XT, k0, YT, first, act)
+        _P1(W, b, XT, k0, YT, first)
 
 
 @njit(**JIT)
@@ -68,8 +67,13 @@ def product(W, b, XT, YT, act=False):
         width = 32
         while width > a - k0:
             width //= 2
-        _chunk(width, W, b, XT, k0, YT, k0 == 0, act and k0 + width == a)
+        _chunk(width, W, b, XT, k0, YT, k0 == 0)
         k0 += width
+    if act:  # a pass of its own: inside the unrolled sums it slowed both precisions
+        c, n = YT.shape
+        for j in range(c):
+            for r in range(n):
+                YT[j, r] = tanh(YT[j, r])
 
 
 @njit(**JIT)
