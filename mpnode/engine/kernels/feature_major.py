@@ -15,6 +15,20 @@ from numba import njit
 from .layers import JIT, tanh
 
 CHUNKS = (32, 16, 8, 4, 2, 1)
+ALIGN = 64  # bytes: a 512-bit vector; loads that straddle two cache lines ran the products 1.3-1.5x slower
+
+
+@njit(**JIT)
+def aligned_empty(shape, like):
+    """np.empty(shape) of ``like``'s dtype, starting on an ALIGN-byte boundary (numba aligns
+    small arrays to 32 bytes only)."""
+    size = 1
+    for s in shape:
+        size *= s
+    item = like.itemsize
+    buf = np.empty(size + ALIGN // item, like.dtype)
+    start = ((-buf.ctypes.data) % ALIGN) // item
+    return buf[start:start + size].reshape(shape)
 
 
 def _partial_product(width):

@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 from ..dims import DM, DU, DX, HIDDEN, LINEAR, LINEAR_OWN, LINEAR_STATE, SELF_MSG, ZERO_MSG
-from .feature_major import dense_tanh_forward, param_cotangent, product, tanh_cotangent
+from .feature_major import aligned_empty, dense_tanh_forward, param_cotangent, product, tanh_cotangent
 from .layers import JIT, aggregate_tile
 
 
@@ -63,7 +63,8 @@ def transpose_into(A, B):
 def linear_input(VT, c, weight, own, i0):
     """The linear path's input for rows i0..: VT[c:] (the MLP's aggregate, feature-major), each
     node r times weight[M + i0 + r] when the path has its ``own`` aggregation (M = weight.size / 2)."""
-    AT = VT[c:].copy()
+    AT = aligned_empty((VT.shape[0] - c, VT.shape[1]), VT)
+    AT[:] = VT[c:]
     if own:
         off = weight.shape[0] // 2 + i0
         for d in range(AT.shape[0]):
@@ -78,7 +79,7 @@ def linear_aggregate_forward(Wa, VT, c, weight, own, i0, KT):
     around the MLP (whose tanh units cannot follow the larger aggregates of denser graphs;
     the gene dynamics are linear in them)."""
     ncol = Wa.shape[1]
-    PT = np.empty((ncol, VT.shape[1]), VT.dtype)
+    PT = aligned_empty((ncol, VT.shape[1]), VT)
     product(Wa, Wa[0, :0], linear_input(VT, c, weight, own, i0), PT)
     KT[:ncol] += PT
 
@@ -88,7 +89,7 @@ def linear_aggregate_backward(Wa, VT, c, weight, own, i0, GKT, gWa, GVT):
     """VJP of linear_aggregate_forward: gWa += A G^T, GVT[c:] += s * (Wa G), G = GKT[:ncol]."""
     GT = GKT[:Wa.shape[1]]
     param_cotangent(linear_input(VT, c, weight, own, i0), GT, gWa, Wa[0, :0])
-    GAT = np.empty((Wa.shape[0], GT.shape[1]), GT.dtype)
+    GAT = aligned_empty((Wa.shape[0], GT.shape[1]), GT)
     product(Wa.T, Wa[0, :0], GT, GAT)
     if own:
         off = weight.shape[0] // 2 + i0
@@ -104,7 +105,7 @@ def mlp_forward(theta, VT, H1T, H2T, dout):
     W1, b1, W2, b2, W3, b3 = unpack(theta, VT.shape[0], H1T.shape[0], dout)
     dense_tanh_forward(VT, W1, b1, H1T)
     dense_tanh_forward(H1T, W2, b2, H2T)
-    KT = np.empty((dout, VT.shape[1]), VT.dtype)
+    KT = aligned_empty((dout, VT.shape[1]), VT)
     product(W3, b3, H2T, KT)
     return KT
 
@@ -118,15 +119,15 @@ def mlp_backward(theta, VT, H1T, H2T, GKT, gtheta):
     none = b1[:0]
     n = VT.shape[1]
     param_cotangent(H2T, GKT, gW3, gb3)
-    GH2T = np.empty((Hd, n), VT.dtype)
+    GH2T = aligned_empty((Hd, n), VT)
     product(W3.T, none, GKT, GH2T)
     tanh_cotangent(H2T, GH2T)
     param_cotangent(H1T, GH2T, gW2, gb2)
-    GH1T = np.empty((Hd, n), VT.dtype)
+    GH1T = aligned_empty((Hd, n), VT)
     product(W2.T, none, GH2T, GH1T)
     tanh_cotangent(H1T, GH1T)
     param_cotangent(VT, GH1T, gW1, gb1)
-    GVT = np.empty((din, n), VT.dtype)
+    GVT = aligned_empty((din, n), VT)
     product(W1.T, none, GH1T, GVT)
     return GVT
 
@@ -176,7 +177,7 @@ def update_vjp_tile(theta, dims, GK, weight, i0, i1, zoff, V, H1, H2, gtheta, gi
     dx, du, dm, H = dims[DX], dims[DU], dims[DM], dims[HIDDEN]
     zero_msg, linear_agg = dims[ZERO_MSG], dims[LINEAR]
     n = i1 - i0
-    GKT = np.empty((GK.shape[1], n), GK.dtype)
+    GKT = aligned_empty((GK.shape[1], n), GK)
     transpose_into(GK, GKT)
     if zero_msg:
         GKT[dx:] = 0

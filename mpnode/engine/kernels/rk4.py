@@ -37,6 +37,7 @@ from numba import njit, prange
 
 from ..dims import DM, DU, DX, HIDDEN, KIND, L2S, SELF_MSG, ZERO_MSG
 from . import l2s_field, mpnode_field
+from .feature_major import aligned_empty
 from .layers import JIT, dense_sum, transpose_tile
 
 TILE = 128  # rows per BLAS call inside a block (blocks hold a few hundred nodes)
@@ -69,9 +70,9 @@ def caches(dims, slots, n, like):
         w = (dx + du, H, H, H, H)
     else:
         w = (dx + du + dm, H, H, 0, 0)
-    dt = like.dtype
-    return (np.empty((slots, n, w[0]), dt), np.empty((slots, n, w[1]), dt), np.empty((slots, n, w[2]), dt),
-            np.empty((slots, n, w[3]), dt), np.empty((slots, n, w[4]), dt))
+    return (aligned_empty((slots, n, w[0]), like), aligned_empty((slots, n, w[1]), like),
+            aligned_empty((slots, n, w[2]), like), aligned_empty((slots, n, w[3]), like),
+            aligned_empty((slots, n, w[4]), like))
 
 
 @njit(**JIT)
