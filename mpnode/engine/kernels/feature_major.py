@@ -108,17 +108,33 @@ def tanh_cotangent(YT, GYT):
 @njit(**JIT)
 def param_cotangent(XT, GYT, gW, gb):
     """gW (a, c) += XT GYT^T and gb (c,) += the rows' sums (gb empty: no bias): a layer's
-    parameter cotangents."""
+    parameter cotangents.  Four outputs per pass over the nodes share each load of XT."""
     a, n = XT.shape
     c = GYT.shape[0]
+    zero = GYT.dtype.type(0)
     for j in range(c if gb.shape[0] > 0 else 0):
-        s = GYT.dtype.type(0)
+        s = zero
         for r in range(n):
             s += GYT[j, r]
         gb[j] += s
+    c4 = c - c % 4
     for k in range(a):
-        for j in range(c):
-            s = GYT.dtype.type(0)
+        x = XT[k]
+        for j in range(0, c4, 4):
+            g0, g1, g2, g3 = GYT[j], GYT[j + 1], GYT[j + 2], GYT[j + 3]
+            s0 = s1 = s2 = s3 = zero
             for r in range(n):
-                s += XT[k, r] * GYT[j, r]
+                xr = x[r]
+                s0 += xr * g0[r]
+                s1 += xr * g1[r]
+                s2 += xr * g2[r]
+                s3 += xr * g3[r]
+            gW[k, j] += s0
+            gW[k, j + 1] += s1
+            gW[k, j + 2] += s2
+            gW[k, j + 3] += s3
+        for j in range(c4, c):
+            s = zero
+            for r in range(n):
+                s += x[r] * GYT[j, r]
             gW[k, j] += s
