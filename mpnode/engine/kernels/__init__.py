@@ -1,7 +1,9 @@
 """The compiled engine: fields on tiles of nodes (MP-NODE, L2S), RK4 drivers and their adjoint.
 
-Modules: ``layers`` (dense layers, tanh, neighbour sums), ``mpnode_field`` and
-``l2s_field`` (one field each: send, update and their VJPs), ``rk4`` (the drivers).
+Modules: ``layers`` (dense layers, tanh, neighbour sums), ``feature_major`` (products on
+(width, n) tiles, compiled per chunk width: the MP-NODE field's layers and the dense neighbour
+sums), ``mpnode_field`` and ``l2s_field`` (one field each: send, update and their VJPs), ``rk4``
+(the drivers).
 `mpnode.engine` is the Python entry point; nothing else calls these directly.
 
 Numba caches each compiled function under its own source file's hash, but a compiled
@@ -29,10 +31,10 @@ def _cache_dir():
 _user_cache_dir = numba.config.CACHE_DIR
 numba.config.CACHE_DIR = _cache_dir()  # read when each function below is decorated
 try:
+    from .feature_major import dense_sum  # noqa: F401
     from .layers import (  # noqa: F401
         dense_backward,
         dense_forward,
-        dense_sum,
         dense_tanh_backward,
         dense_tanh_forward,
     )

@@ -97,6 +97,30 @@ def dense_tanh_forward(XT, W, b, YT):
 
 
 @njit(**JIT)
+def dense_sum(A, src, col0, out, ocol0):
+    """out[b*N + i, ocol0+d] = sum_j A[i, j] src[b*N + j, col0+d] for every graph b of the rows.
+
+    The rows of ``src`` are k copies of one N-node graph with adjacency A (N, N); the k
+    graphs go through one product (N, N) @ (N, k*w), which beats walking CSR rows for
+    small graphs (and, unlike a BLAS call, takes no lock that two threads wait on).
+    """
+    N = A.shape[0]
+    k = src.shape[0] // N
+    w = out.shape[1] - ocol0
+    Mt = aligned_empty((N, k * w), src)
+    for b in range(k):
+        for j in range(N):
+            for d in range(w):
+                Mt[j, b * w + d] = src[b * N + j, col0 + d]
+    R = aligned_empty((N, k * w), src)
+    product(A.T, A[0, :0], Mt, R)
+    for b in range(k):
+        for i in range(N):
+            for d in range(w):
+                out[b * N + i, ocol0 + d] = R[i, b * w + d]
+
+
+@njit(**JIT)
 def tanh_cotangent(YT, GYT):
     """GYT *= 1 - YT^2: the cotangent through tanh, from its output."""
     c, n = YT.shape

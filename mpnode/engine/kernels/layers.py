@@ -2,7 +2,8 @@
 
 Dense products go to BLAS (``np.dot`` on contiguous tiles; the caller pins BLAS to one
 thread so numba's threads do not fight BLAS's own); elementwise work and the neighbour
-sums are loops that LLVM vectorises.  Every ``*_backward`` *adds* the parameter
+sums are loops that LLVM vectorises.  (The MP-NODE field and the dense neighbour sums use
+the feature-major products of ``feature_major`` instead.)  Every ``*_backward`` *adds* the parameter
 cotangents into the buffers it is given, so one buffer can collect a whole rollout.
 """
 import math
@@ -138,29 +139,6 @@ def dense_backward(X, W, GY, gW, gb):
 # Neighbour sums.  Rows of the arrays are nodes ``i - zoff`` (a block of the batch, or
 # the whole graph with zoff = 0); node i hears indices[indptr[i]:indptr[i+1]].
 # ---------------------------------------------------------------------------
-@njit(**JIT)
-def dense_sum(A, src, col0, out, ocol0):
-    """out[b*N + i, ocol0+d] = sum_j A[i, j] src[b*N + j, col0+d] for every graph b of the rows.
-
-    The rows of ``src`` are k copies of one N-node graph with adjacency A (N, N); the k
-    graphs go through one GEMM (N, N) @ (N, k*w), which beats walking CSR rows for
-    small graphs.
-    """
-    N = A.shape[0]
-    k = src.shape[0] // N
-    w = out.shape[1] - ocol0
-    Mt = np.empty((N, k * w), src.dtype)
-    for b in range(k):
-        for j in range(N):
-            for d in range(w):
-                Mt[j, b * w + d] = src[b * N + j, col0 + d]
-    R = np.dot(A, Mt)
-    for b in range(k):
-        for i in range(N):
-            for d in range(w):
-                out[b * N + i, ocol0 + d] = R[i, b * w + d]
-
-
 @njit(**JIT)
 def aggregate_tile(src, col0, width, sums, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0):
     """out[r, ocol0:ocol0+width] = weight[i] * (sum over row i [and i itself] of src[j, col0:]), i = i0 + r.

@@ -37,8 +37,8 @@ from numba import njit, prange
 
 from ..dims import DM, DU, DX, HIDDEN, KIND, L2S, SELF_MSG, ZERO_MSG
 from . import l2s_field, mpnode_field
-from .feature_major import aligned_empty
-from .layers import JIT, dense_sum, transpose_tile
+from .feature_major import aligned_empty, dense_sum
+from .layers import JIT, transpose_tile
 
 TILE = 128  # rows per BLAS call inside a block (blocks hold a few hundred nodes)
 STAGE_TILE = 256  # rows per parallel task of the stagewise drivers (one big graph: fewer, larger tasks)
