@@ -1,0 +1,70 @@
+"""Does an ensemble's spread rank its errors across test trajectories, and if not, why not?
+
+Evaluates an ensemble file on a test file (`mpnode.evaluation.evaluate`, as `mpnode eval` does) and
+takes its per-trajectory spread and error apart: how much they differ between trajectories, the
+share of the squared error common to every trajectory, the Spearman correlation per state group
+(the file's `state_groups`) and per dimension, under other readings of the spread (the training
+data's units, a geometric mean or median over dimensions, absolute instead of squared, early steps
+only), and against how far each trajectory's truth lies from the average one.  Prints one JSON
+object; the table in docs/evidence/ensembles.md ("quad3 -> quad6") comes from it.
+
+    python benchmarks/studies/spread_ranking.py ENSEMBLE.h5 TEST.h5
+"""
+import json
+import sys
+
+import numpy as np
+
+from mpnode.data import read_trajectories
+from mpnode.evaluation.evaluate import evaluate
+from mpnode.evaluation.metrics import variance
+from mpnode.evaluation.spread import spearman
+from mpnode.model import Model
+
+
+def per_trajectory(a, dims=slice(None), steps=slice(None)):
+    """(B,) the mean of a (B, T, N, dx) array over steps, nodes and the dimensions ``dims``."""
+    return a[:, steps][..., dims].mean(axis=(1, 2, 3))
+
+
+def readings(err, sp, mean, truth, s, var, x_std):
+    """Spearman(spread, error) across trajectories under readings other than mpnode's."""
+    train_var = np.asarray(x_std, dtype=np.float64) ** 2
+    per_dim_err, per_dim_sp = err.mean(axis=(1, 2)), sp.mean(axis=(1, 2))
+    flat = len(err), -1
+    out = {"training_data_units": spearman(per_trajectory(s ** 2 / train_var), per_trajectory((mean - truth) ** 2 / train_var)),
+           "geometric_mean_over_dims": spearman(np.log(per_dim_sp).mean(1), np.log(per_dim_err).mean(1)),
+           "median_entry": spearman(np.median(sp.reshape(flat), 1), np.median(err.reshape(flat), 1)),
+           "mean_abs_vs_mean_spread": spearman(per_trajectory(s / np.sqrt(var)),
+                                               per_trajectory(np.abs(mean - truth) / np.sqrt(var)))}
+    for t in (1, 5, 10, 25):
+        out[f"steps_1_to_{t}"] = spearman(per_trajectory(sp, steps=slice(0, t)), per_trajectory(err, steps=slice(0, t)))
+    return out
+
+
+def main(model_path, data_path):
+    model = Model.load(model_path)
+    r = evaluate(model, read_trajectories(data_path))
+    if r.spread is None:
+        sys.exit(f"{model_path} is one model, not an ensemble: it has no spread")
+    truth, mean, s = r.scored[:, 1:], r.predictions[:, 1:], r.spread[:, 1:]
+    var = variance(r.scored)
+    err, sp = (mean - truth) ** 2 / var, s ** 2 / var
+    e, q = per_trajectory(err), per_trajectory(sp)
+    shared = (mean - truth).mean(axis=0, keepdims=True)  # the error every trajectory has in common
+    unusual = per_trajectory((truth - truth.mean(axis=0)) ** 2 / var)  # how far each truth is from the average one
+    out = {"nmse": r.nmse, "spread_error_spearman": r.ensemble["spread_error_spearman"],
+           "error_p10_p50_p90": np.percentile(e, [10, 50, 90]).tolist(), "error_std_over_mean": e.std() / e.mean(),
+           "spread_p10_p50_p90": np.percentile(q, [10, 50, 90]).tolist(), "spread_std_over_mean": q.std() / q.mean(),
+           "common_error_share": 1 - ((mean - truth - shared) ** 2 / var).mean() / err.mean(),
+           "spearman_error_vs_unusual_truth": spearman(unusual, e), "spearman_spread_vs_unusual_truth": spearman(unusual, q),
+           "per_group": {g: spearman(per_trajectory(sp, dims), per_trajectory(err, dims)) for g, dims in (r.groups or {}).items()},
+           "per_dim": [spearman(per_trajectory(sp, [d]), per_trajectory(err, [d])) for d in range(err.shape[-1])],
+           "readings": readings(err, sp, mean, truth, s, var, model.x_std)}
+    print(json.dumps(out, default=float))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        sys.exit(__doc__.rsplit("\n\n", 1)[-1])
+    main(*sys.argv[1:])
