@@ -132,6 +132,16 @@ def test_mlp_vjp_matches_finite_differences():
         assert rel(blk, params(spec, ftheta)[name]) < 1e-6, name
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_feature_major_tiles_start_on_a_vector_boundary(dtype):
+    """Tile arrays start on 64 bytes (a 512-bit vector), whatever numba's allocator gives."""
+    like = np.zeros(1, dtype)
+    for shape in [(3, 5), (32, 128), (2, 7, 6)]:
+        a = feature_major.aligned_empty(shape, like)
+        assert a.shape == shape and a.dtype == dtype and a.flags.c_contiguous
+        assert a.ctypes.data % feature_major.ALIGN == 0
+
+
 @pytest.mark.parametrize("a", [1, 5, 6, 13, 32, 37, 64, 70])
 def test_feature_major_product_every_width(a):
     """The product's chunks (32, 16, ..., 1) cover any input width, with or without a bias,

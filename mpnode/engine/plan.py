@@ -50,7 +50,7 @@ class Plan:
     """
 
     def __init__(self, graph, n_threads, self_messages, dtype, aggregation, driver="auto",
-                 blocks_per_thread=2, tile=128, ordering="auto"):
+                 blocks_per_thread=1, tile=128, ordering="auto"):
         self.blocks = None
         self.order = None
         self.csr = Graph(graph.indptr, graph.indices)  # not the graph: the cache holds it weakly
