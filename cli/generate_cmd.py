@@ -36,9 +36,10 @@ from .main import claim_outputs, main, scheduler_option
 @click.option("--hide", metavar="DIMS", default="",
               help="Data as they come: state dimensions nobody measures (indices or state names, comma-separated).")
 @click.option("--excitation", type=click.FloatRange(min=0), metavar="N",
-              help="Quadrotor scenes: each quadrotor's collective thrust carries a random offset (std N newtons, "
-                   "held 2 steps) that its state does not decide, so that a model trained on the file learns what "
-                   "the thrusts do (for model-predictive control); the scene's value otherwise (built-in: 0).")
+              help="Quadrotor scenes: every second step each quadrotor's thrusts get random offsets its state "
+                   "does not decide (collective: std N newtons over both steps; torques: a doublet a quarter that "
+                   "size), so that a model trained on the file learns what the thrusts do, as model-predictive "
+                   "control needs; the scene's value otherwise (built-in: 0).")
 @scheduler_option
 def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler, jitter, drop, noise, hide,
              excitation):

@@ -68,8 +68,8 @@ CONTROL = dict(
     tilt_max_deg=40.0,             # desired thrust direction limited to this tilt
     gain_jitter=0.15,              # per trajectory: each gain times uniform(1 - jitter, 1 + jitter)
     thrust_noise=0.03,             # per step and rotor: N(0, thrust_noise^2) N added before clipping
-    thrust_excitation=0.0,         # per quadrotor: an N(0, thrust_excitation^2) N offset on each of its rotors
-    excitation_hold=2,             # (collective thrust, no torque), held this many steps: thrusts the state does not decide
+    thrust_excitation=0.0,         # per quadrotor and pair of steps: an N(0, thrust_excitation^2) N collective offset
+    excitation_torque=0.25,        # and a torque doublet of this fraction of it: thrusts the state does not decide
     tension_reg=1e-2,              # Tikhonov term of the feed-forward tension split (N^2 units of |u|^2)
     fail_tilt_deg=75.0,            # a trajectory whose quadrotor tilts beyond this ...
     fail_error=2.0,                # ... or leaves its reference by this (m) is re-drawn
@@ -502,11 +502,11 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
     """One doorway trajectory: the controller runs at every saved step, its (noisy, clipped)
     output held for dt.  Draws the scenario, then N(0, thrust_noise^2) per rotor and step, all
     from ``rng``.  Starts in the static equilibrium of the circle formation at the load start.
-    With ``thrust_excitation`` > 0, each quadrotor's rotors also carry one random offset, held for
-    ``excitation_hold`` steps (drawn before that step's noise), so that a model learning from the
-    data sees what the thrusts do apart from what the state does; at 0 nothing more is drawn.
-    The offset moves the collective thrust only: a torque held that long tips a quadrotor over
-    (the attitude loop has no integral action), a collective offset the position loop absorbs.
+    With ``thrust_excitation`` > 0, each quadrotor's rotors also carry random offsets drawn every
+    second step (before that step's noise; `excitation`), so that a model learning from the data
+    sees what the thrusts do apart from what the state does; at 0 nothing more is drawn.  The
+    torques come as doublets, and small: a torque held over two steps, or a doublet much above a
+    tenth of a newton per rotor, tips a quadrotor over (the attitude loop has no integral action).
 
     Returns dict: x (T+1, n, 13), u (T, n, 4), load (T+1, 6), start, goal, gain_scale (4,),
     evaluations (RHS state evaluations), min_tension.  Raises NumericalError if the solver fails
@@ -522,7 +522,7 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
     physics.evaluations = 0
     fail_tilt = math.radians(c["fail_tilt_deg"])
     min_tension = np.inf
-    offset = np.zeros((n, CONTROL_DIM))
+    offsets = np.zeros((2, n, CONTROL_DIM))
     for k in range(n_steps):
         t = k * dt
         x, _ = unpack(y, n)
@@ -531,9 +531,9 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
         F, err = control(t, x)
         if np.max(err) > c["fail_error"]:
             raise NumericalError(f"closed loop lost a quadrotor at t = {t:g} (tracking error {np.max(err):.2f} m)")
-        if c["thrust_excitation"] > 0 and k % c["excitation_hold"] == 0:
-            offset = excitation(rng, n, c["thrust_excitation"])
-        F = np.clip(F + offset + c["thrust_noise"] * rng.standard_normal(F.shape), 0.0, physics.F_max)
+        if c["thrust_excitation"] > 0 and k % 2 == 0:
+            offsets = excitation(rng, n, c["thrust_excitation"], c["excitation_torque"])
+        F = np.clip(F + offsets[k % 2] + c["thrust_noise"] * rng.standard_normal(F.shape), 0.0, physics.F_max)
         y = step(physics, y, F, t, dt, method, rtol, atol)
         min_tension = min(min_tension, float(np.min(physics.tensions(y, n))))
         ys.append(y)
@@ -544,9 +544,14 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
                 gains=control.gains())
 
 
-def excitation(rng, n, std):
-    """Thrust offsets (n, 4): one N(0, std^2) draw per quadrotor, the same on its four rotors."""
-    return np.repeat(std * rng.standard_normal((n, 1)), CONTROL_DIM, axis=1)
+def excitation(rng, n, std, torque):
+    """Thrust offsets (2, n, 4) of two steps: per quadrotor, one N(0, std^2) collective offset on
+    its four rotors in both steps, plus a doublet, a zero-sum pattern across its rotors (torques)
+    of N(0, (torque std)^2) draws in the first step and its negative in the second."""
+    collective = np.repeat(std * rng.standard_normal((n, 1)), CONTROL_DIM, axis=1)
+    d = torque * std * rng.standard_normal((n, CONTROL_DIM))
+    d -= d.mean(axis=1, keepdims=True)
+    return np.stack([collective + d, collective - d])
 
 
 # ---- a learned model in the loop ----------------------------------------------------
@@ -566,8 +571,8 @@ class SceneControllers:
         n, c = scene.graph.n_nodes, CONTROL
         physics = Physics({**PARAMS, **scene.params})
         self.dt, self.noise, self.f_max = scene.dt, c["thrust_noise"], physics.F_max
-        self.excitation, self.hold = scene.excitation, c["excitation_hold"]
-        self.offsets = np.zeros((scene.trajectories, n, CONTROL_DIM))
+        self.excitation, self.torque = scene.excitation, c["excitation_torque"]
+        self.offsets = np.zeros((scene.trajectories, 2, n, CONTROL_DIM))
         self.rngs = [np.random.default_rng(np.random.SeedSequence(scene.seed, spawn_key=(b,)))
                      for b in range(scene.trajectories)]
         self.controllers, x0 = [], []
@@ -583,9 +588,9 @@ class SceneControllers:
         with np.errstate(all="ignore"):  # a lost (non-finite) swarm gets non-finite thrusts, not an error
             for b, (control, rng) in enumerate(zip(self.controllers, self.rngs)):
                 f, _ = control(k * self.dt, np.asarray(x[b], dtype=np.float64))
-                if self.excitation > 0 and k % self.hold == 0:
-                    self.offsets[b] = excitation(rng, f.shape[0], self.excitation)
-                F[b] = np.clip(f + self.offsets[b] + self.noise * rng.standard_normal(f.shape), 0.0, self.f_max)
+                if self.excitation > 0 and k % 2 == 0:
+                    self.offsets[b] = excitation(rng, f.shape[0], self.excitation, self.torque)
+                F[b] = np.clip(f + self.offsets[b, k % 2] + self.noise * rng.standard_normal(f.shape), 0.0, self.f_max)
         return F
 
 
