@@ -12,12 +12,14 @@ Both MPCs minimise the same cost of the quadrotors' states over H steps: distanc
 reference formation (positions, velocities, the attitude of the nominal thrust, no body rates)
 and thrusts away from the nominal ones.  With --anchor W > 0 (a regularised MPC, for both
 MPCs alike) the first step's thrusts are also charged W (F - F_scene)^2, F_scene the scene
-controller's thrusts at the observed state: the plan may depart from a controller known to fly
-only as far as the model's predicted gain pays for.  The paths are new: start and goal drawn as the scene
-draws them but from other seeds, and the doorway moved (sideways by up to 0.4 m, up by up to
-0.3 m), where the training data's doorway never moves.  Reported per controller: the load's
-tracking error (its distance to the reference path, mean and max over the run) and the wall
-time per control step.  No thrust noise, nominal gains.
+controller's thrusts at the observed state: the plan may depart from a controller known to
+fly only as far as the model's predicted gain pays for.  The paths are new: start and goal
+drawn as the scene draws them but from other seeds, and the doorway moved (sideways by up to
+0.4 m, up by up to 0.3 m), where the training data's doorway never moves.  Reported per
+controller: the load's tracking error (its distance to the reference path, mean and max over
+the run), the time per control step (mean, median and p95 of the wall time, and the mean CPU
+time of this process, which a shared or paused machine does not inflate) and the mean
+|F - F_scene| of the thrusts applied.  No thrust noise, nominal gains.
 
     python benchmarks/studies/mpc/quadrotor_mpc.py MODEL.h5 [--paths 20] [--horizon 10] [--anchor W] [--out DIR]
 """
@@ -147,7 +149,7 @@ def learned_mpc(model, ref, physics, horizon, iterations, messages, anchor):
 
 
 def closed_loop(make_controller, path):
-    """Run one path on the truth: load error (STEPS+1,), seconds per control step, the load's path, failure,
+    """Run one path on the truth: load error (STEPS+1,), (wall, CPU) seconds per control step, the load's path, failure,
     and the mean |F - F_scene| (N) of the thrusts applied against the scene controller's at the same states."""
     physics = quad.Physics()
     start, goal, door = path
@@ -157,9 +159,9 @@ def closed_loop(make_controller, path):
     y = quad.pack(x0, load0)
     loads, seconds, departures, failure = [y[13 * N:13 * N + 3]], [], [], None
     for k in range(STEPS):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         F = np.clip(controller(k * DT, y), 0.0, physics.F_max)
-        seconds.append(time.perf_counter() - t0)
+        seconds.append((time.perf_counter() - t0, time.process_time() - c0))
         departures.append(float(np.mean(np.abs(F - scene(k * DT, y)))))
         try:
             y = quad.step(physics, y, F, k * DT, DT)
@@ -199,13 +201,17 @@ def main():
         path = new_path(a.first_seed + p)
         row = {"seed": a.first_seed + p, "start": path[0].tolist(), "goal": path[1].tolist(), "door": path[2].tolist()}
         for name in a.controllers.split(","):
-            err, secs, loads, wanted, failure, departure = closed_loop(makers[name], path)
+            err, times, loads, wanted, failure, departure = closed_loop(makers[name], path)
+            secs, cpu = np.array(times).T
             row[name] = dict(mean_error=float(err.mean()), max_error=float(err.max()), failure=failure,
-                             departure=departure,
+                             departure=departure, ms_median=1e3 * float(np.median(secs)),
+                             cpu_ms_per_step=1e3 * float(np.mean(cpu)),
                              ms_per_step=1e3 * float(np.mean(secs)), ms_p95=1e3 * float(np.percentile(secs, 95)),
                              load=np.round(loads, 6).tolist(), reference=np.round(wanted, 6).tolist())
             print(f"path {p} {name:8s} load error mean {err.mean():.3f} m max {err.max():.3f} m, "
-                  f"{1e3 * np.mean(secs):.1f} ms/step, |F - F_scene| {departure:.3f} N"
+                  f"{1e3 * np.mean(secs):.1f} ms/step (median {1e3 * np.median(secs):.1f}, "
+                  f"CPU {1e3 * np.mean(cpu):.1f}), "
+                  f"|F - F_scene| {departure:.3f} N"
                   + (f"  FAILED {failure}" if failure else ""), flush=True)
         results["paths"].append(row)
     with open(os.path.join(a.out, "quadrotor_results.json"), "w") as f:
@@ -218,7 +224,9 @@ def summarise(results, names):
         rows = [r[name] for r in results["paths"]]
         print(f"{name:8s} mean load error {np.mean([r['mean_error'] for r in rows]):.3f} m, "
               f"max {np.max([r['max_error'] for r in rows]):.3f} m, "
-              f"{np.mean([r['ms_per_step'] for r in rows]):.1f} ms per control step, "
+              f"{np.mean([r['ms_per_step'] for r in rows]):.1f} ms per control step "
+              f"(median {np.mean([r.get('ms_median', np.nan) for r in rows]):.1f}, "
+              f"CPU {np.mean([r.get('cpu_ms_per_step', np.nan) for r in rows]):.1f}), "
               f"{sum(r['failure'] is not None for r in rows)} failed, "
               f"|F - F_scene| {np.mean([r.get('departure', np.nan) for r in rows]):.3f} N")
     if {"learned", "true"} <= set(names):
