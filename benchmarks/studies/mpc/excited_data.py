@@ -20,12 +20,12 @@ from mpnode.data import Trajectories
 
 def one(args):
     """Trajectory b (re-drawn from its own generator when the closed loop loses the swarm)."""
-    b, ctrl = args
+    b, noise = args
     scene = BUILTIN["quad3"]
     rng = np.random.default_rng(np.random.SeedSequence(scene.seed, spawn_key=(b,)))
     for _ in range(20):
         try:
-            return quad.closed_loop(rng, 3, scene.horizon, scene.dt, quad.Physics(), ctrl)
+            return quad.closed_loop(rng, 3, scene.horizon, scene.dt, quad.Physics(), {"thrust_noise": noise})
         except NumericalError:
             continue
     raise NumericalError(f"trajectory {b} failed 20 times")
@@ -36,19 +36,14 @@ def main():
     ap.add_argument("output")
     ap.add_argument("-B", "--trajectories", type=int, default=500)
     ap.add_argument("--noise", type=float, default=0.1, help="per-rotor thrust noise (N) added at every step")
-    ap.add_argument("--excitation", type=float, default=0.0,
-                    help="collective thrust offset (N, std) per pair of steps (data_gen's thrust_excitation)")
-    ap.add_argument("--torque", type=float, default=0.5, help="the torque doublets' size, a fraction of --excitation")
     ap.add_argument("--workers", type=int, default=2)
     a = ap.parse_args()
     scene = BUILTIN["quad3"]
-    ctrl = {"thrust_noise": a.noise, "thrust_excitation": a.excitation, "excitation_torque": a.torque}
     with ProcessPoolExecutor(a.workers) as pool:
-        runs = list(pool.map(one, [(b, ctrl) for b in range(a.trajectories)], chunksize=10))
+        runs = list(pool.map(one, [(b, a.noise) for b in range(a.trajectories)], chunksize=10))
     traj = Trajectories(x=np.stack([r["x"] for r in runs]), u=np.stack([r["u"] for r in runs]),
                         graphs=scene.graph.build(), dt=scene.dt, system=quad.SYSTEM,
                         attrs={**quad.PARAMS, "scene": "quad3", "ctrl_thrust_noise": a.noise,
-                               "ctrl_thrust_excitation": a.excitation, "ctrl_excitation_torque": a.torque,
                                "description": "quad3 with more thrust noise (benchmarks/studies/mpc/excited_data.py)"},
                         params=quad.draw_params(None, 3, None),
                         aux={"load": np.stack([r["load"] for r in runs])})
