@@ -35,8 +35,14 @@ from .main import claim_outputs, main, scheduler_option
               help="Data as they come: Gaussian measurement noise, its std REL times each dimension's std.")
 @click.option("--hide", metavar="DIMS", default="",
               help="Data as they come: state dimensions nobody measures (indices or state names, comma-separated).")
+@click.option("--excitation", type=click.FloatRange(min=0), metavar="N",
+              help="Quadrotor scenes: every second step each quadrotor's thrusts get random offsets its state "
+                   "does not decide (collective: std N newtons over both steps; torques: a doublet a quarter that "
+                   "size), so that a model trained on the file learns what the thrusts do, as model-predictive "
+                   "control needs; the scene's value otherwise (built-in: 0).")
 @scheduler_option
-def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler, jitter, drop, noise, hide):
+def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler, jitter, drop, noise, hide,
+             excitation):
     """Integrate the reference system of SCENE and write the trajectories to FILE.
 
     SCENE is a built-in name (list them with `mpnode scenes`) or a path to a
@@ -67,11 +73,13 @@ def generate(scene, output, trajectories, horizon, dt, seed, workers, scheduler,
     if scene in SETS:
         shape = {k: v for k, v in dict(horizon=horizon, dt=dt).items() if v is not None}
         scenes = SETS[scene].scenes(trajectories, seed, **shape)
+        if excitation is not None:
+            scenes = [replace(s, excitation=excitation) for s in scenes]
         outputs = set_paths(output, scenes)
     elif os.path.isdir(output):
         raise InputError("--output", output, "is a folder", "a file name (a folder only for a scene set)")
     else:
-        overrides = dict(trajectories=trajectories, horizon=horizon, dt=dt, seed=seed)
+        overrides = dict(trajectories=trajectories, horizon=horizon, dt=dt, seed=seed, excitation=excitation)
         scenes = [replace(load_scene(scene), **{k: v for k, v in overrides.items() if v is not None})]
         outputs = [output]
     flags = {f"--output ({s.name})" if len(scenes) > 1 else "--output": out for s, out in zip(scenes, outputs)}

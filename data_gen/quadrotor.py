@@ -68,6 +68,8 @@ CONTROL = dict(
     tilt_max_deg=40.0,             # desired thrust direction limited to this tilt
     gain_jitter=0.15,              # per trajectory: each gain times uniform(1 - jitter, 1 + jitter)
     thrust_noise=0.03,             # per step and rotor: N(0, thrust_noise^2) N added before clipping
+    thrust_excitation=0.0,         # per quadrotor and pair of steps: an N(0, thrust_excitation^2) N collective offset
+    excitation_torque=0.25,        # and a torque doublet of this fraction of it: thrusts the state does not decide
     tension_reg=1e-2,              # Tikhonov term of the feed-forward tension split (N^2 units of |u|^2)
     fail_tilt_deg=75.0,            # a trajectory whose quadrotor tilts beyond this ...
     fail_error=2.0,                # ... or leaves its reference by this (m) is re-drawn
@@ -500,6 +502,11 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
     """One doorway trajectory: the controller runs at every saved step, its (noisy, clipped)
     output held for dt.  Draws the scenario, then N(0, thrust_noise^2) per rotor and step, all
     from ``rng``.  Starts in the static equilibrium of the circle formation at the load start.
+    With ``thrust_excitation`` > 0, each quadrotor's rotors also carry random offsets drawn every
+    second step (before that step's noise; `excitation`), so that a model learning from the data
+    sees what the thrusts do apart from what the state does; at 0 nothing more is drawn.  The
+    torques come as doublets, and small: a torque held over two steps, or a doublet much above a
+    tenth of a newton per rotor, tips a quadrotor over (the attitude loop has no integral action).
 
     Returns dict: x (T+1, n, 13), u (T, n, 4), load (T+1, 6), start, goal, gain_scale (4,),
     evaluations (RHS state evaluations), min_tension.  Raises NumericalError if the solver fails
@@ -515,6 +522,7 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
     physics.evaluations = 0
     fail_tilt = math.radians(c["fail_tilt_deg"])
     min_tension = np.inf
+    offsets = np.zeros((2, n, CONTROL_DIM))
     for k in range(n_steps):
         t = k * dt
         x, _ = unpack(y, n)
@@ -523,7 +531,9 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
         F, err = control(t, x)
         if np.max(err) > c["fail_error"]:
             raise NumericalError(f"closed loop lost a quadrotor at t = {t:g} (tracking error {np.max(err):.2f} m)")
-        F = np.clip(F + c["thrust_noise"] * rng.standard_normal(F.shape), 0.0, physics.F_max)
+        if c["thrust_excitation"] > 0 and k % 2 == 0:
+            offsets = excitation(rng, n, c["thrust_excitation"], c["excitation_torque"])
+        F = np.clip(F + offsets[k % 2] + c["thrust_noise"] * rng.standard_normal(F.shape), 0.0, physics.F_max)
         y = step(physics, y, F, t, dt, method, rtol, atol)
         min_tension = min(min_tension, float(np.min(physics.tensions(y, n))))
         ys.append(y)
@@ -534,14 +544,24 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
                 gains=control.gains())
 
 
+def excitation(rng, n, std, torque):
+    """Thrust offsets (2, n, 4) of two steps: per quadrotor, one N(0, std^2) collective offset on
+    its four rotors in both steps, plus a doublet, a zero-sum pattern across its rotors (torques)
+    of N(0, (torque std)^2) draws in the first step and its negative in the second."""
+    collective = np.repeat(std * rng.standard_normal((n, 1)), CONTROL_DIM, axis=1)
+    d = torque * std * rng.standard_normal((n, CONTROL_DIM))
+    d -= d.mean(axis=1, keepdims=True)
+    return np.stack([collective + d, collective - d])
+
+
 # ---- a learned model in the loop ----------------------------------------------------
 class SceneControllers:
     """The controllers of a scene's B trajectories, to drive a learned model (`mpnode simulate`) as
     `generate` drives the physics: trajectory b draws its scenario (start, goal, gain factors) and
-    then its thrust noise step after step from ``SeedSequence(scene.seed, spawn_key=(b,))``, as
-    `closed_loop` does, and starts in the same equilibrium; so where the physics needed no
-    re-draw, trajectory b of a file generated with the same scene and seed is the reference of
-    the learned trajectory b.  Nothing stops a learned swarm that loses a quadrotor.
+    then its thrust excitation and noise step after step from ``SeedSequence(scene.seed,
+    spawn_key=(b,))``, as `closed_loop` does, and starts in the same equilibrium; so where the
+    physics needed no re-draw, trajectory b of a file generated with the same scene and seed is
+    the reference of the learned trajectory b.  Nothing stops a learned swarm that loses a quadrotor.
 
     x0 : (B, n, 13) initial states;  calling it with (k, x (B, n, 13)) gives the thrusts (B, n, 4)
     held over step k.
@@ -551,6 +571,8 @@ class SceneControllers:
         n, c = scene.graph.n_nodes, CONTROL
         physics = Physics({**PARAMS, **scene.params})
         self.dt, self.noise, self.f_max = scene.dt, c["thrust_noise"], physics.F_max
+        self.excitation, self.torque = scene.excitation, c["excitation_torque"]
+        self.offsets = np.zeros((scene.trajectories, 2, n, CONTROL_DIM))
         self.rngs = [np.random.default_rng(np.random.SeedSequence(scene.seed, spawn_key=(b,)))
                      for b in range(scene.trajectories)]
         self.controllers, x0 = [], []
@@ -566,7 +588,9 @@ class SceneControllers:
         with np.errstate(all="ignore"):  # a lost (non-finite) swarm gets non-finite thrusts, not an error
             for b, (control, rng) in enumerate(zip(self.controllers, self.rngs)):
                 f, _ = control(k * self.dt, np.asarray(x[b], dtype=np.float64))
-                F[b] = np.clip(f + self.noise * rng.standard_normal(f.shape), 0.0, self.f_max)
+                if self.excitation > 0 and k % 2 == 0:
+                    self.offsets[b] = excitation(rng, f.shape[0], self.excitation, self.torque)
+                F[b] = np.clip(f + self.offsets[b, k % 2] + self.noise * rng.standard_normal(f.shape), 0.0, self.f_max)
         return F
 
 
@@ -590,7 +614,7 @@ def make_rhs(p, graph):
 def generate(scene, *, workers=2, max_tries=10, progress=None, scheduler=None):
     """The trajectories of a quadrotor_load scene (Trajectories with u and aux/load).
 
-    Trajectory b draws everything (start, goal, gain factors, thrust noise) from
+    Trajectory b draws everything (start, goal, gain factors, thrust excitation and noise) from
     ``SeedSequence(scene.seed, spawn_key=(b,))``; a trajectory that fails is re-drawn from the
     same generator, at most ``max_tries`` times.  Root attributes: the physics (spec names),
     the controller settings (ctrl_*), seed, integrator, tolerances, controller_rate,
@@ -603,8 +627,9 @@ def generate(scene, *, workers=2, max_tries=10, progress=None, scheduler=None):
     graphs = scene.graph.build()
     physics_params = {**PARAMS, **scene.params}
     arrays = draw_params(physics_params, n, None)
+    ctrl = {**CONTROL, "thrust_excitation": scene.excitation}
     job = dict(n=n, T=T, dt=scene.dt, params={**physics_params, **arrays}, method=scene.integrator,
-               rtol=scene.rtol, atol=scene.atol, seed=scene.seed, max_tries=max_tries)
+               rtol=scene.rtol, atol=scene.atol, seed=scene.seed, max_tries=max_tries, ctrl=ctrl)
     out = dict(x=np.empty((B, T + 1, n, STATE_DIM)), u=np.empty((B, T, n, CONTROL_DIM)),
                load=np.empty((B, T + 1, LOAD_DIM)), start=np.empty((B, 3)), goal=np.empty((B, 3)),
                gain_scale=np.empty((B, 4)), evaluations=np.empty(B, np.int64), redraws=np.empty(B, np.int64),
@@ -631,7 +656,7 @@ def generate(scene, *, workers=2, max_tries=10, progress=None, scheduler=None):
                  evaluations_mean=float(out["evaluations"].mean()),
                  min_tension=float(out["min_tension"].min()), state_names=list(STATE_NAMES),
                  state_groups=list(STATE_GROUPS),
-                 **{f"ctrl_{k}": (np.asarray(v, float) if isinstance(v, tuple) else v) for k, v in CONTROL.items()},
+                 **{f"ctrl_{k}": (np.asarray(v, float) if isinstance(v, tuple) else v) for k, v in ctrl.items()},
                  **{f"ctrl_{k}_nominal": v for k, v in probe.gains().items()},
                  **scene.graph.describe())
     aux = dict(load=out["load"], load_start=out["start"], load_goal=out["goal"], gain_scale=out["gain_scale"],
@@ -648,7 +673,7 @@ def _run(job, chunk):
         rng = np.random.default_rng(np.random.SeedSequence(job["seed"], spawn_key=(b,)))
         for tries in range(job["max_tries"]):
             try:
-                r = closed_loop(rng, job["n"], job["T"], job["dt"], physics, None, job["method"],
+                r = closed_loop(rng, job["n"], job["T"], job["dt"], physics, job["ctrl"], job["method"],
                                 job["rtol"], job["atol"])
                 break
             except NumericalError as e:

@@ -18,6 +18,9 @@ Anything else is a TOML file with this schema (example: scenes/example_gene_ring
     integrator   = "DOP853"     # optional: a scipy solve_ivp method
     rtol         = 1e-9         # optional
     atol         = 1e-9         # optional
+    excitation   = 0.5          # optional, quadrotor_load only (default 0): std (N) of a random offset
+                                # of each quadrotor's collective thrust, held for a few steps, so
+                                # that the data show what the thrusts do apart from the state
     [params]                    # optional: the system's scalar parameters, spec names (e.g. b, f, h)
     [graph]                     # required
     builder  = "edges"          # complete | edges | gnp | gnm | barabasi_albert | watts_strogatz
@@ -74,6 +77,7 @@ class Scene:
     integrator: str = "DOP853"
     rtol: float = 1e-9
     atol: float = 1e-9
+    excitation: float = 0.0
 
     def summary(self):
         """One line for `mpnode scenes`."""
@@ -216,11 +220,21 @@ def check_scene(scene, source):
     if scene.integrator not in INTEGRATORS:
         raise InputError(source, "integrator", f"unknown method {scene.integrator!r}",
                          "one of " + ", ".join(INTEGRATORS))
+    _check_excitation(scene.excitation, system, source)
     if system.generator is None:
         get_sampler(scene.initial, system, scene.graph.n_nodes, source, "initial")
     elif scene.initial not in system.samplers:  # closed-loop systems draw their own initial states
         raise InputError(source, "initial", f"initial state {scene.initial!r} is not defined for {system.name}",
                          "one of " + ", ".join(system.samplers))
+
+
+def _check_excitation(value, system, source):
+    """The thrust excitation: a finite number >= 0, and above 0 only for the quadrotors' thrusts."""
+    if not (value >= 0 and math.isfinite(value)):
+        raise InputError(source, "excitation", f"is {value}", "a finite number >= 0 (N)")
+    if value > 0 and system.name != "quadrotor_load":
+        raise InputError(source, "excitation", f"is {value} for {system.name}, which has no thrusts to excite",
+                         "0, or a quadrotor_load scene")
 
 
 def _check_graph_ranges(spec, source):
@@ -239,7 +253,7 @@ def _check_graph_ranges(spec, source):
 # ---- TOML -----------------------------------------------------------------------------
 _TOP = {"description": str, "system": str, "trajectories": int, "horizon": int, "dt": float,
         "seed": int, "system_seed": int, "initial": str, "integrator": str, "rtol": float,
-        "atol": float, "params": dict, "graph": dict}
+        "atol": float, "excitation": float, "params": dict, "graph": dict}
 _GRAPH = {"builder": str, "nodes": int, "edges": list, "directed": bool, "seed": int, "seeds": list,
           "p": float, "m": int, "k": int}
 _TYPE_NAMES = {str: "a string", int: "an integer", float: "a number", dict: "a table", list: "an array",
@@ -266,7 +280,8 @@ def read_scene(path):
         graph=_graph_spec(g, source),
         params={k: float(v) for k, v in params.items()},
         **{k: (float(doc[k]) if _TOP[k] is float else doc[k])
-           for k in ("initial", "trajectories", "horizon", "dt", "seed", "system_seed", "integrator", "rtol", "atol")
+           for k in ("initial", "trajectories", "horizon", "dt", "seed", "system_seed", "integrator", "rtol", "atol",
+                     "excitation")
            if k in doc},
     )
     check_scene(scene, source)

@@ -170,6 +170,20 @@ def test_cli_bad_option_and_missing_folder(tmp_path):
     assert r.exit_code == 2 and "does not exist" in r.stderr
 
 
+def test_cli_excitation_is_for_quadrotor_scenes_only(tmp_path):
+    assert "--excitation" in cli("generate", "--help").output
+    r = cli("generate", "lorenz3", "-o", tmp_path / "x.h5", "--excitation", 0.5)
+    assert r.exit_code == 2 and "excitation" in r.stderr and "no thrusts" in r.stderr
+    assert "Traceback" not in r.output and not (tmp_path / "x.h5").exists()
+    assert cli("generate", "quad3", "-o", tmp_path / "x.h5", "--excitation", -1).exit_code == 2
+    scene = tmp_path / "q.toml"
+    scene.write_text('system = "quadrotor_load"\ninitial = "equilibrium"\ntrajectories = 1\nhorizon = 2\n'
+                     'dt = 0.1\nintegrator = "LSODA"\nexcitation = 0.3\n[graph]\nbuilder = "complete"\nnodes = 3\n')
+    r = cli("generate", scene, "-o", tmp_path / "q.h5", "--workers", 1)
+    assert r.exit_code == 0, r.output
+    assert read_trajectories(tmp_path / "q.h5").attrs["ctrl_thrust_excitation"] == 0.3
+
+
 def test_cli_scenes_lists_every_builtin():
     r = cli("scenes")
     assert r.exit_code == 0

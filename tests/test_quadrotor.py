@@ -186,6 +186,38 @@ def test_quad3_file_validates_and_its_controls_reproduce_it(tmp_path, physics):
     np.testing.assert_array_equal(again.u, traj.u[:2])
 
 
+def test_thrust_excitation_is_a_collective_offset_and_a_torque_doublet_per_pair_of_steps(physics):
+    """Thrust excitation: each thrust is the controller's at the saved state plus, per quadrotor and pair of
+    steps, one collective offset (the same on its four rotors in both steps) and a zero-sum doublet (torques:
+    a pattern across the rotors, then its negative): thrusts that the state does not decide."""
+    c = {**Q.CONTROL, "thrust_noise": 0.0, "thrust_excitation": 0.4}
+    r = Q.closed_loop(np.random.default_rng(5), 3, 6, 0.1, physics, c, **TOL)
+    control = Q.Controller(3, Q.Reference(3, r["start"], r["goal"], physics, c), physics, c, 0.1, r["gain_scale"])
+    assert np.all((r["u"] > 0) & (r["u"] < physics.F_max))  # nothing clipped: the offsets are what is left
+    offsets = np.array([r["u"][k] - control(k * 0.1, r["x"][k])[0] for k in range(6)])  # (T, n, 4)
+    collective = offsets.mean(axis=-1)
+    doublet = offsets - collective[..., None]
+    np.testing.assert_allclose(collective[1::2], collective[0::2], atol=1e-12)
+    np.testing.assert_allclose(doublet[1::2], -doublet[0::2], atol=1e-12)
+    assert 0.1 < np.std(collective[0::2]) < 1.0 and not np.allclose(collective[0], collective[2])
+    assert 0.01 < np.std(doublet) < np.std(collective[0::2])
+
+
+@pytest.mark.parametrize("excitation", [0.0, 0.4])
+def test_the_scenes_controllers_draw_the_excitation_as_generate_does(excitation):
+    """From the file's own states, the scene's controllers (which drive a learned model) give the file's thrusts."""
+    scene = replace(BUILTIN["quad3"], trajectories=2, horizon=4, excitation=excitation)
+    t = generate(scene, workers=1)
+    assert t.attrs["ctrl_thrust_excitation"] == excitation
+    x0, controls = Q.controllers(scene)
+    np.testing.assert_array_equal(x0, t.x[:, 0])
+    for k in range(4):
+        np.testing.assert_allclose(controls(k, t.x[:, k]), t.u[:, k], rtol=0, atol=1e-12)
+    if excitation:
+        plain = generate(replace(scene, excitation=0.0), workers=1)
+        assert np.max(np.abs(plain.u[:, 0] - t.u[:, 0])) > 0.05
+
+
 def test_quadrotor_scene_needs_the_equilibrium_start():
     check_scene(BUILTIN["quad6"], "quad6")
     with pytest.raises(InputError, match="initial"):

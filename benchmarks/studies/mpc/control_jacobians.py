@@ -5,7 +5,9 @@ RK4 at dt / 10, one-sided differences), at states of a quad3 file, per block of 
 The model steps from the trajectory's start under the file's thrusts up to step t (so its
 messages are those it would have there), then takes the file's true state at t; printed: the
 relative error ||Ju_model - Ju_true|| / ||Ju_true|| of each block (positions, quaternions,
-velocities, body rates) at each of the states.
+velocities, body rates) at each of the states, with respect to all thrusts and, apart, to each
+quadrotor's collective thrust (its four rotors together) and to its three torques (the rotors'
+differences, the mixer's other rows).
 
     python benchmarks/studies/mpc/control_jacobians.py MODEL.h5 QUAD3.h5 [--states 3,20 10,5 50,35]
 """
@@ -18,6 +20,8 @@ from mpnode import Model, Simulator, read_trajectories
 from mpnode.base.graph import Graph
 
 BLOCKS = {"positions": [0, 1, 2], "quaternions": [3, 4, 5, 6], "velocities": [7, 8, 9], "body rates": [10, 11, 12]}
+#: rotor thrust changes (columns) that move one quadrotor's collective thrust, roll, pitch and yaw torque alone
+COMBINATIONS = np.linalg.inv(quad.mixer(quad.PARAMS["L"], quad.PARAMS["k_m"]))
 
 
 def true_ju(x, load, F, eps=1e-6, substeps=10, dt=0.1):
@@ -44,7 +48,9 @@ def main():
     ap.add_argument("--states", nargs="+", default=["3,20", "10,5", "50,35"], help="trajectory,step pairs")
     a = ap.parse_args()
     model, data = Model.load(a.model).copy(np.float64), read_trajectories(a.data)
-    errors = {name: [] for name in BLOCKS}
+    errors = {(name, part): [] for name in BLOCKS for part in ("all", "collective", "torques")}
+    combine = np.kron(np.eye(3), COMBINATIONS)  # Ju @ combine: columns (quadrotor, [collective, 3 torques])
+    parts = {"all": slice(None), "collective": [0, 4, 8], "torques": [1, 2, 3, 5, 6, 7, 9, 10, 11]}
     for pair in a.states:
         b, t = map(int, pair.split(","))
         sim = Simulator(model, Graph.complete(3))
@@ -56,9 +62,14 @@ def main():
         want = true_ju(data.x[b, t], data.aux["load"][b, t], data.u[b, t])
         for name, dims in BLOCKS.items():
             rows = [i * 13 + d for i in range(3) for d in dims]
-            errors[name].append(np.linalg.norm(ju[rows] - want[rows]) / np.linalg.norm(want[rows]))
-    for name, e in errors.items():
-        print(f"{name:12s} relative error of d(next state)/d(thrusts): " + ", ".join(f"{v:.2f}" for v in e))
+            for part, cols in parts.items():
+                got, true = (j[rows] if part == "all" else (j[rows] @ combine)[:, cols] for j in (ju, want))
+                nothing = np.linalg.norm(true) < 1e-6 * np.linalg.norm(want[rows])  # e.g. collective -> rates
+                errors[name, part].append(np.nan if nothing else np.linalg.norm(got - true) / np.linalg.norm(true))
+    for (name, part), e in errors.items():
+        if not np.all(np.isnan(e)):  # "-": the true equations' response is 0
+            print(f"{name:12s} {part:10s} relative error of d(next state)/d(thrusts): "
+                  + ", ".join("-" if np.isnan(v) else f"{v:.2f}" for v in e))
 
 
 if __name__ == "__main__":

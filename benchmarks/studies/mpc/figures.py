@@ -45,7 +45,8 @@ def quadrotor(results, path, out):
     axes[2].set_ylabel("load tracking error (m)")
     axes[2].set_title("tracking error")
     axes[0].legend(fontsize=9)
-    fig.suptitle(f"quad3, new path {path} (seed {row['seed']})")
+    anchor = f", both MPCs regularised (--anchor {results['anchor']:g})" if results.get("anchor") else ""
+    fig.suptitle(f"quad3, new path {path} (seed {row['seed']}){anchor}")
     fig.tight_layout()
     fig.savefig(out, dpi=100)
 

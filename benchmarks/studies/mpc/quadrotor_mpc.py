@@ -10,13 +10,18 @@ simulator (the truth: data_gen's LSODA integration at 1e-9), under three control
 
 Both MPCs minimise the same cost of the quadrotors' states over H steps: distance to the
 reference formation (positions, velocities, the attitude of the nominal thrust, no body rates)
-and thrusts away from the nominal ones.  The paths are new: start and goal drawn as the scene
-draws them but from other seeds, and the doorway moved (sideways by up to 0.4 m, up by up to
-0.3 m), where the training data's doorway never moves.  Reported per controller: the load's
-tracking error (its distance to the reference path, mean and max over the run) and the wall
-time per control step.  No thrust noise, nominal gains.
+and thrusts away from the nominal ones.  With --anchor W > 0 (a regularised MPC, for both
+MPCs alike) the first step's thrusts are also charged W (F - F_scene)^2, F_scene the scene
+controller's thrusts at the observed state: the plan may depart from a controller known to
+fly only as far as the model's predicted gain pays for.  The paths are new: start and goal
+drawn as the scene draws them but from other seeds, and the doorway moved (sideways by up to
+0.4 m, up by up to 0.3 m), where the training data's doorway never moves.  Reported per
+controller: the load's tracking error (its distance to the reference path, mean and max over
+the run), the time per control step (mean, median and p95 of the wall time, and the mean CPU
+time of this process, which a shared or paused machine does not inflate) and the mean
+|F - F_scene| of the thrusts applied.  No thrust noise, nominal gains.
 
-    python benchmarks/studies/mpc/quadrotor_mpc.py MODEL.h5 [--paths 20] [--horizon 10] [--out DIR]
+    python benchmarks/studies/mpc/quadrotor_mpc.py MODEL.h5 [--paths 20] [--horizon 10] [--anchor W] [--out DIR]
 """
 import argparse
 import json
@@ -57,6 +62,17 @@ def references(ref, physics, t, horizon):
         if k < horizon:
             f[k] = np.linalg.norm(force, axis=1)[:, None] / 4
     return x, f
+
+
+def plan_cost(x_ref, f_ref, anchor=0.0, f_scene=None):
+    """The MPC's cost of one plan (tracking_cost): states towards x_ref (H+1, N, 13), thrusts
+    towards f_ref (H, N, 4) with weight R; with anchor > 0 the first step's thrusts also towards
+    f_scene (N, 4) with weight anchor (the two quadratics of step 0 summed into one)."""
+    if not anchor:
+        return tracking_cost(x_ref[None], Q, R, f_ref[None])
+    u_ref, r = f_ref.copy(), np.broadcast_to(R, f_ref.shape).copy()
+    u_ref[0], r[0] = (R * f_ref[0] + anchor * f_scene) / (R + anchor), R + anchor
+    return tracking_cost(x_ref[None], Q, r[None], u_ref[None])
 
 
 class TruePredictor:
@@ -102,24 +118,24 @@ def scene_controller(ref, physics):
     return lambda t, y: control(t, quad.unpack(y, N)[0])[0]
 
 
-def true_mpc(ref, physics, horizon, iterations):
-    predict, plan = TruePredictor(physics), None
+def true_mpc(ref, physics, horizon, iterations, anchor):
+    predict, plan, scene = TruePredictor(physics), None, scene_controller(ref, physics)
 
     def control(t, y):
         nonlocal plan
         x_ref, f_ref = references(ref, physics, t, horizon)
         plan = f_ref[None] if plan is None else np.concatenate([plan[:, 1:], plan[:, -1:]], axis=1)
-        cost = tracking_cost(x_ref[None], Q, R, f_ref[None])
+        cost = plan_cost(x_ref, f_ref, anchor, scene(t, y) if anchor else None)
         plan, _ = optimise_controls(lambda U: predict(y, U), cost, plan, (0.0, physics.F_max), iterations)
         return plan[0, 0]
 
     return control
 
 
-def learned_mpc(model, ref, physics, horizon, iterations, messages):
+def learned_mpc(model, ref, physics, horizon, iterations, messages, anchor):
     mpc = ShootingMPC(model, Graph.complete(N), horizon, bounds=(0.0, physics.F_max), iterations=iterations,
                       messages=messages)
-    started = []
+    started, scene = [], scene_controller(ref, physics)
 
     def control(t, y):
         x = quad.unpack(y, N)[0]
@@ -127,24 +143,26 @@ def learned_mpc(model, ref, physics, horizon, iterations, messages):
         if not started:
             mpc.reset(x[None], f_ref[0][None])
             started.append(True)
-        return mpc.control(x[None], tracking_cost(x_ref[None], Q, R, f_ref[None]))[0]
+        return mpc.control(x[None], plan_cost(x_ref, f_ref, anchor, scene(t, y) if anchor else None))[0]
 
     return control
 
 
 def closed_loop(make_controller, path):
-    """Run one path on the truth: load error (STEPS+1,), seconds per control step, the load's path, failure."""
+    """Run one path on the truth: load error (STEPS+1,), (wall, CPU) seconds per control step, the load's path, failure,
+    and the mean |F - F_scene| (N) of the thrusts applied against the scene controller's at the same states."""
     physics = quad.Physics()
     start, goal, door = path
     ref = quad.Reference(N, start, goal, physics, {**quad.CONTROL, "doorway": tuple(door)})
-    controller = make_controller(ref, physics)
+    controller, scene = make_controller(ref, physics), scene_controller(ref, physics)
     x0, load0, _, _ = quad.static_equilibrium(N, start, physics)
     y = quad.pack(x0, load0)
-    loads, seconds, failure = [y[13 * N:13 * N + 3]], [], None
+    loads, seconds, departures, failure = [y[13 * N:13 * N + 3]], [], [], None
     for k in range(STEPS):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         F = np.clip(controller(k * DT, y), 0.0, physics.F_max)
-        seconds.append(time.perf_counter() - t0)
+        seconds.append((time.perf_counter() - t0, time.process_time() - c0))
+        departures.append(float(np.mean(np.abs(F - scene(k * DT, y)))))
         try:
             y = quad.step(physics, y, F, k * DT, DT)
         except Exception as e:  # the solver gives up: the swarm was lost
@@ -156,7 +174,7 @@ def closed_loop(make_controller, path):
             break
     loads = np.array(loads)
     wanted = np.array([ref.load(k * DT)[0] for k in range(len(loads))])
-    return np.linalg.norm(loads - wanted, axis=1), seconds, loads, wanted, failure
+    return np.linalg.norm(loads - wanted, axis=1), seconds, loads, wanted, failure, float(np.mean(departures))
 
 
 def main():
@@ -169,24 +187,32 @@ def main():
     ap.add_argument("--controllers", default="scene,true,learned")
     ap.add_argument("--messages", default="carry", choices=("carry", "zero"),
                     help="the learned model's messages at the start of each plan (ShootingMPC)")
+    ap.add_argument("--anchor", type=float, default=0.0,
+                    help="weight of the first thrusts' distance to the scene controller's, both MPCs (0: none)")
     ap.add_argument("--out", default=os.path.dirname(os.path.abspath(__file__)))
     a = ap.parse_args()
     model = Model.load(a.model)
     makers = {"scene": scene_controller,
-              "true": lambda ref, p: true_mpc(ref, p, a.horizon, a.iterations),
-              "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages)}
+              "true": lambda ref, p: true_mpc(ref, p, a.horizon, a.iterations, a.anchor),
+              "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages, a.anchor)}
     results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations,
-               "messages": a.messages, "paths": []}
+               "messages": a.messages, "anchor": a.anchor, "paths": []}
     for p in range(a.paths):
         path = new_path(a.first_seed + p)
         row = {"seed": a.first_seed + p, "start": path[0].tolist(), "goal": path[1].tolist(), "door": path[2].tolist()}
         for name in a.controllers.split(","):
-            err, secs, loads, wanted, failure = closed_loop(makers[name], path)
+            err, times, loads, wanted, failure, departure = closed_loop(makers[name], path)
+            secs, cpu = np.array(times).T
             row[name] = dict(mean_error=float(err.mean()), max_error=float(err.max()), failure=failure,
+                             departure=departure, ms_median=1e3 * float(np.median(secs)),
+                             cpu_ms_per_step=1e3 * float(np.mean(cpu)),
                              ms_per_step=1e3 * float(np.mean(secs)), ms_p95=1e3 * float(np.percentile(secs, 95)),
                              load=np.round(loads, 6).tolist(), reference=np.round(wanted, 6).tolist())
             print(f"path {p} {name:8s} load error mean {err.mean():.3f} m max {err.max():.3f} m, "
-                  f"{1e3 * np.mean(secs):.1f} ms/step" + (f"  FAILED {failure}" if failure else ""), flush=True)
+                  f"{1e3 * np.mean(secs):.1f} ms/step (median {1e3 * np.median(secs):.1f}, "
+                  f"CPU {1e3 * np.mean(cpu):.1f}), "
+                  f"|F - F_scene| {departure:.3f} N"
+                  + (f"  FAILED {failure}" if failure else ""), flush=True)
         results["paths"].append(row)
     with open(os.path.join(a.out, "quadrotor_results.json"), "w") as f:
         json.dump(results, f)
@@ -198,8 +224,15 @@ def summarise(results, names):
         rows = [r[name] for r in results["paths"]]
         print(f"{name:8s} mean load error {np.mean([r['mean_error'] for r in rows]):.3f} m, "
               f"max {np.max([r['max_error'] for r in rows]):.3f} m, "
-              f"{np.mean([r['ms_per_step'] for r in rows]):.1f} ms per control step, "
-              f"{sum(r['failure'] is not None for r in rows)} failed")
+              f"{np.mean([r['ms_per_step'] for r in rows]):.1f} ms per control step "
+              f"(median {np.mean([r.get('ms_median', np.nan) for r in rows]):.1f}, "
+              f"CPU {np.mean([r.get('cpu_ms_per_step', np.nan) for r in rows]):.1f}), "
+              f"{sum(r['failure'] is not None for r in rows)} failed, "
+              f"|F - F_scene| {np.mean([r.get('departure', np.nan) for r in rows]):.3f} N")
+    if {"learned", "true"} <= set(names):
+        learned, true = ([r[name]["mean_error"] for r in results["paths"]] for name in ("learned", "true"))
+        print(f"load error learned / true: {np.mean(learned) / np.mean(true):.2f} (means of the paths' means), "
+              f"worst path {np.max(np.divide(learned, true)):.2f}")
 
 
 if __name__ == "__main__":
