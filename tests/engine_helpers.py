@@ -105,11 +105,11 @@ def spec_(**kw):
     return FieldSpec(**base)
 
 
-def mixed_graph(seed=0, big=150):
+def mixed_graph(seed=0, big=230):
     """A batch: three copies of one 9-node graph, then one ``big``-node graph (nodes 27..).
 
     Each graph has an isolated node and directed edges (engine_helpers.make_graph).  The
-    copies make a dense block, the big graph a CSR block that crosses TILE = 128 inside
+    copies make a dense block, the big graph a CSR block that crosses TILE = 192 inside
     the block; as one graph it spans two tiles, so the stagewise driver meets edges
     across tiles.
     """

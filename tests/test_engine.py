@@ -223,7 +223,7 @@ def test_test_graphs_cover_dense_and_csr_blocks():
     If the planner changes, this fails rather than letting the other tests silently stop
     covering one of the two aggregation paths.
     """
-    for big in (150, 140):
+    for big in (230, 220):
         plan = engine_plan.plan_for(mixed_graph(big=big), spec_(), np.float64)
         assert plan.blocks is not None
         assert np.any(plan.dense_n > 0) and np.any(plan.dense_n == 0), (plan.blocks, plan.dense_n)
@@ -280,7 +280,7 @@ def targets_off_the_kink(pred, rng):
 def test_gradient_matches_finite_differences(driver, kind, self_messages, zero_messages):
     spec = spec_(self_messages=self_messages, zero_messages=zero_messages)
     rng = np.random.default_rng(7)
-    graph = mixed_graph(7, big=140)
+    graph = mixed_graph(7, big=220)
     T = 3
     theta, x0, u = problem(spec, graph, T, seed=8)
     x = targets_off_the_kink(rollout_ref(spec, theta, x0, graph, u, T), rng)

@@ -44,7 +44,7 @@ def node_spec(n_nodes):
 @pytest.mark.parametrize("name", KIND_SPECS)
 def test_rollout_matches_reference(driver, name):
     spec = KIND_SPECS[name]
-    graph = mixed_graph(3, big=140)
+    graph = mixed_graph(3, big=220)
     theta, x0, u = problem(spec, graph, 3, seed=4)
     got = engine.forward(spec, theta, x0, graph, u, 3)
     want = rollout_ref(spec, theta, x0, graph, u, 3)
@@ -85,7 +85,7 @@ def test_aggregations_differ_as_the_format_says():
 def test_the_linear_path_reads_its_own_aggregate():
     """mean for the MLP, scaled sum for the linear path: not the rollout of either alone, and
     the same in a renumbered (reverse Cuthill-McKee) stagewise run, whose weights move too."""
-    graph = mixed_graph(6, big=140)
+    graph = mixed_graph(6, big=220)
     spec = KIND_SPECS["mpnode-mean-linear-scaled"]
     theta, x0, u = problem(spec, graph, 3, seed=7)
     got = engine.forward(spec, theta, x0, graph, u, 3)
@@ -152,7 +152,7 @@ def check_vjp(spec, graph, T, seed, n_dirs=2):
 def test_rollout_vjp_with_any_cotangent_matches_finite_differences(driver, name):
     """On mixed_graph: isolated nodes (L2S: psi must get its gradient), directed edges, a dense
     and a CSR block (stagewise: tiles crossed by edges)."""
-    gtheta, gx0 = check_vjp(KIND_SPECS[name], mixed_graph(8, big=140), 3, seed=9)
+    gtheta, gx0 = check_vjp(KIND_SPECS[name], mixed_graph(8, big=220), 3, seed=9)
     # the isolated node's initial state gets a gradient only through its own dynamics
     assert np.all(np.isfinite(gx0))
 

@@ -40,7 +40,7 @@ from . import l2s_field, mpnode_field
 from .feature_major import aligned_empty, dense_sum
 from .layers import JIT, transpose_tile
 
-TILE = 128  # rows per BLAS call inside a block (blocks hold a few hundred nodes)
+TILE = 192  # rows per tile inside a block (one block per thread: a few hundred nodes)
 STAGE_TILE = 256  # rows per parallel task of the stagewise drivers (one big graph: fewer, larger tasks)
 
 # RK4 (classic): stage s reads z + C[s] h k_{s-1}; z+ = z + h sum_s B[s] k_s.
