@@ -106,7 +106,7 @@ def spec_(**kw):
 
 
 def mixed_graph(seed=0, big=230):
-    """A batch: three copies of one 9-node graph, then one ``big``-node graph (nodes 27..).
+    """A batch: four copies of one 9-node graph, then one ``big``-node graph (nodes 36..).
 
     Each graph has an isolated node and directed edges (engine_helpers.make_graph).  The
     copies make a dense block, the big graph a CSR block that crosses TILE = 192 inside
@@ -115,7 +115,7 @@ def mixed_graph(seed=0, big=230):
     """
     rng = np.random.default_rng(seed)
     g9 = make_graph(rng, 9)
-    return block_diagonal([g9, g9, g9, make_graph(rng, big)])
+    return block_diagonal([g9, g9, g9, g9, make_graph(rng, big)])
 
 
 def problem(spec, graph, T, seed=1, dtype=np.float64):

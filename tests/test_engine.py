@@ -320,8 +320,9 @@ def test_gradient_matches_finite_differences(driver, kind, self_messages, zero_m
         e[i] = eps
         fd = (L(theta + e, x0) - L(theta - e, x0)) / (2 * eps)
         assert abs(fd - gtheta[i]) < 1e-6 * abs(fd), (i, fd, gtheta[i])
-    for node, d in [(8, 0), (17, 1), (9 + 7, 1), (0, 0), (127, 1), (128, 0), (27 + 127, 0), (27 + 128, 1),
-                    (27 + 138, 0), (27 + 139, 1)]:
+    big0 = 36  # the big graph's first node (mixed_graph); a tile boundary lies TILE nodes further
+    for node, d in [(8, 0), (17, 1), (9 + 7, 1), (0, 0), (big0 - 1, 1), (big0, 0),
+                    (big0 + kernels.TILE - 1, 0), (big0 + kernels.TILE, 1), (big0 + 210, 0), (big0 + 219, 1)]:
         e = np.zeros_like(x0)
         e[node, d] = eps
         fd = (L(theta, x0 + e) - L(theta, x0 - e)) / (2 * eps)
