@@ -531,9 +531,8 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
         F, err = control(t, x)
         if np.max(err) > c["fail_error"]:
             raise NumericalError(f"closed loop lost a quadrotor at t = {t:g} (tracking error {np.max(err):.2f} m)")
-        if c["thrust_excitation"] > 0 and k % 2 == 0:
-            offsets = excitation(rng, n, c["thrust_excitation"], c["excitation_torque"])
-        F = np.clip(F + offsets[k % 2] + c["thrust_noise"] * rng.standard_normal(F.shape), 0.0, physics.F_max)
+        F = disturbed_thrusts(rng, k, F, offsets, c["thrust_excitation"], c["excitation_torque"], c["thrust_noise"],
+                              physics.F_max)
         y = step(physics, y, F, t, dt, method, rtol, atol)
         min_tension = min(min_tension, float(np.min(physics.tensions(y, n))))
         ys.append(y)
@@ -542,6 +541,16 @@ def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, method="LSODA", rtol=1e
     return dict(x=ys[:, :13 * n].reshape(-1, n, 13), u=np.stack(us), load=ys[:, 13 * n:], start=start,
                 goal=goal, gain_scale=gain_scale, evaluations=physics.evaluations, min_tension=min_tension,
                 gains=control.gains())
+
+
+def disturbed_thrusts(rng, k, F, offsets, std, torque, noise, f_max):
+    """The thrusts (n, 4) held over step k: the controller's F plus the excitation (redrawn into
+    ``offsets`` (2, n, 4) every second step when ``std`` > 0) and N(0, noise^2) per rotor, clipped
+    to the rotors' range.  `closed_loop` and `SceneControllers` both draw through here, so a
+    learned swarm driven by the scene's controllers gets the file's draws."""
+    if std > 0 and k % 2 == 0:
+        offsets[:] = excitation(rng, F.shape[0], std, torque)
+    return np.clip(F + offsets[k % 2] + noise * rng.standard_normal(F.shape), 0.0, f_max)
 
 
 def excitation(rng, n, std, torque):
@@ -588,9 +597,8 @@ class SceneControllers:
         with np.errstate(all="ignore"):  # a lost (non-finite) swarm gets non-finite thrusts, not an error
             for b, (control, rng) in enumerate(zip(self.controllers, self.rngs)):
                 f, _ = control(k * self.dt, np.asarray(x[b], dtype=np.float64))
-                if self.excitation > 0 and k % 2 == 0:
-                    self.offsets[b] = excitation(rng, f.shape[0], self.excitation, self.torque)
-                F[b] = np.clip(f + self.offsets[b, k % 2] + self.noise * rng.standard_normal(f.shape), 0.0, self.f_max)
+                F[b] = disturbed_thrusts(rng, k, f, self.offsets[b], self.excitation, self.torque, self.noise,
+                                         self.f_max)
         return F
 
 

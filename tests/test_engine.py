@@ -207,8 +207,9 @@ def test_reference_aggregation_semantics():
 
 
 def test_one_big_graph_runs_stagewise_and_matches_reference(driver_calls):
-    """No forcing: a connected graph with M >= 2*TILE*threads goes to the stagewise driver."""
-    n = 2 * kernels.TILE * numba.get_num_threads() + 40
+    """No forcing: a connected graph of STAGEWISE_MIN_NODES_PER_THREAD nodes per thread or more
+    goes to the stagewise driver."""
+    n = engine_plan.STAGEWISE_MIN_NODES_PER_THREAD * numba.get_num_threads() + 40
     graph = make_graph(np.random.default_rng(5), n)
     spec = spec_(self_messages=True, substeps=2)
     theta, x0, u = problem(spec, graph, 2)

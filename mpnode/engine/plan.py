@@ -31,6 +31,9 @@ def closed_pieces(graph):
 
 
 DENSE_MAX_NODES = 128
+#: a graph that cannot be split into blocks runs stagewise once it gives every thread this many
+#: nodes (two stagewise tasks' worth); smaller ones run as one block
+STAGEWISE_MIN_NODES_PER_THREAD = 256
 
 
 class Plan:
@@ -50,7 +53,7 @@ class Plan:
     """
 
     def __init__(self, graph, n_threads, self_messages, dtype, aggregation, driver="auto",
-                 blocks_per_thread=1, tile=128, ordering="auto"):
+                 blocks_per_thread=1, ordering="auto"):
         self.blocks = None
         self.order = None
         self.csr = Graph(graph.indptr, graph.indices)  # not the graph: the cache holds it weakly
@@ -63,7 +66,7 @@ class Plan:
             pieces = closed_pieces(graph)
             parts, sizes = (None,) * (len(pieces) - 1), np.diff(pieces)
         n_blocks = max(1, n_threads * blocks_per_thread)
-        too_big = m >= 2 * tile * n_threads and sizes.max(initial=0) > m / n_blocks
+        too_big = m >= STAGEWISE_MIN_NODES_PER_THREAD * n_threads and sizes.max(initial=0) > m / n_blocks
         if driver == "stagewise" or (driver == "auto" and too_big):
             if ordering != "none":  # one graph too big to split: stagewise, in a cache-friendly order
                 self.order = locality_order(self.csr, force=ordering == "rcm")

@@ -6,8 +6,7 @@ over the layer's inputs is unrolled at compile time: one compiled kernel per chu
 row the running sums of a chunk stay in registers (one FMA per input, the weight broadcast
 from memory) and the row is stored once per chunk; a 32-wide hidden layer is one pass.
 BLAS's small-GEMM calls, which these replace, reached half the machine's rate on the
-model's widths and left the tanh to a second pass over memory
-(docs/evidence/speed.md#the-engine-against-the-flop-floor-and-the-peers).
+model's widths (docs/evidence/speed.md#the-engine-against-the-flop-floor-and-the-peers).
 """
 import numpy as np
 from numba import njit

@@ -134,11 +134,11 @@ def mlp_backward(theta, VT, H1T, H2T, GKT, gtheta):
 
 @njit(**JIT)
 def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc, mcol0):
-    """k = F(zin) for nodes i0..i1: returns KT (dz, n), feature-major; V, H1, H2 (this tile's cache rows, used
-    feature-major) keep the MLP's inputs and activations for the VJP.  ``sums``: dense-path
-    row sums or empty.  The neighbours' messages are read from msrc[:, mcol0:mcol0+dm]: zin
-    itself (mcol0 = dx), or a compact copy of its message columns (mcol0 = 0; half the memory
-    a gather touches)."""
+    """k = F(zin) for nodes i0..i1: returns KT (dz, n), feature-major; V, H1, H2 (this tile's
+    cache rows, used feature-major) keep the MLP's inputs and activations for the VJP.
+    ``sums``: dense-path row sums or empty.  The neighbours' messages are read from
+    msrc[:, mcol0:mcol0+dm]: zin itself (mcol0 = dx), or a compact copy of its message columns
+    (mcol0 = 0; half the memory a gather touches)."""
     dx, du, dm, H = dims[DX], dims[DU], dims[DM], dims[HIDDEN]
     self_msg, zero_msg, linear_agg = dims[SELF_MSG], dims[ZERO_MSG], dims[LINEAR]
     indptr, indices, weight = graph
