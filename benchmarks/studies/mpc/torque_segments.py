@@ -34,11 +34,16 @@ def segment(rng, data, a, physics):
     control = quad.Controller(n, ref, physics, quad.CONTROL, dt, aux["gain_scale"][b])
     y = quad.pack(data.x[b, k0], aux["load"][b, k0])
     ys, us, extra = [y], [], np.zeros((2, n, quad.CONTROL_DIM))
+    hold = np.repeat(data.u[b, k0].mean(axis=1, keepdims=True), quad.CONTROL_DIM, axis=1)
     for s in range(a.steps):
         t = (k0 + s) * dt
-        F, _ = control(t, quad.unpack(y, n)[0])
-        F = quad.disturbed_thrusts(rng, s, F, extra, a.collective, a.torque / a.collective,
-                                   quad.CONTROL["thrust_noise"], physics.F_max)
+        if a.open_loop:  # the start's collective thrusts without torques, held, plus fresh offsets every step
+            F = np.clip(hold + quad.excitation(rng, n, a.collective, a.torque / a.collective)[0],
+                        0.0, physics.F_max)
+        else:
+            F, _ = control(t, quad.unpack(y, n)[0])
+            F = quad.disturbed_thrusts(rng, s, F, extra, a.collective, a.torque / a.collective,
+                                       quad.CONTROL["thrust_noise"], physics.F_max)
         try:
             y = quad.step(physics, y, F, t, dt)
         except NumericalError:
@@ -59,6 +64,9 @@ def main():
     ap.add_argument("--steps", type=int, default=10, help="steps per segment")
     ap.add_argument("--torque", type=float, default=0.3, help="std (N) of the per-rotor torque doublet's draws")
     ap.add_argument("--collective", type=float, default=0.3, help="std (N) of the collective offset (> 0)")
+    ap.add_argument("--open-loop", action="store_true",
+                    help="no controller: the start's collective thrusts held without torques, a fresh collective offset "
+                         "and torque pattern every step (thrusts no state decides, not even through the controller)")
     ap.add_argument("--max-tilt", type=float, default=50.0, help="re-draw a segment tilting beyond this (deg)")
     ap.add_argument("--seed", type=int, default=1)
     a = ap.parse_args()
