@@ -157,6 +157,34 @@ def test_feature_major_product_every_width(a):
     np.testing.assert_allclose(YT, WT @ XT, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("width", [1, 2, 3, 4, 5, 7, 8, 13])
+@pytest.mark.parametrize("self_msg", [False, True])
+def test_neighbour_sums_every_width(width, self_msg):
+    """The CSR walk (a compiled copy per narrow width, chunks of four beyond) and its transpose
+    against dense sums, on rows ``zoff`` into the arrays, with empty rows and an output offset."""
+    rng = np.random.default_rng(width)
+    m, zoff, i0, i1, col0, ocol0 = 23, 4, 6, 20, 2, 1
+    A = (rng.random((m, m)) < 0.25) * 1.0
+    A[i0 + 1] = 0  # a row with no neighbours
+    np.fill_diagonal(A, 0)
+    g = Graph.from_edges(m, np.argwhere(A), directed=True)  # node i hears j where A[i, j]
+    indptr, indices = g.indptr, g.indices + zoff
+    heard = A + np.eye(m) * self_msg
+    src = rng.standard_normal((m, col0 + width + 1))
+    weight = rng.random(m + zoff)
+    out = np.full((i1 - i0, ocol0 + width), np.nan)
+    kernels.layers.aggregate_tile(src, col0, width, np.empty((0, 0)), np.concatenate([np.zeros(zoff, np.int64), indptr]),
+                                  indices, weight, self_msg, i0 + zoff, i1 + zoff, zoff, out, ocol0)
+    want = weight[i0 + zoff:i1 + zoff, None] * (heard @ src[:, col0:col0 + width])[i0:i1]
+    np.testing.assert_allclose(out[:, ocol0:], want, rtol=1e-13, atol=1e-13)
+    gcot = rng.standard_normal((m, width))
+    t = Graph.from_edges(m, np.argwhere(A)[:, ::-1], directed=True)  # for sender j, who hears it
+    tout = np.full((m, ocol0 + width), np.nan)
+    kernels.layers.transpose_tile(gcot, np.concatenate([np.zeros(zoff, np.int64), t.indptr]), t.indices + zoff,
+                                  self_msg, i0 + zoff, i1 + zoff, zoff, tout, ocol0)
+    np.testing.assert_allclose(tout[i0:i1, ocol0:], (heard.T @ gcot)[i0:i1], rtol=1e-13, atol=1e-13)
+
+
 # ---------------------------------------------------------------------------
 # 2. Rollouts against the NumPy reference
 # ---------------------------------------------------------------------------

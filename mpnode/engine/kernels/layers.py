@@ -139,31 +139,86 @@ def dense_backward(X, W, GY, gW, gb):
 # Neighbour sums.  Rows of the arrays are nodes ``i - zoff`` (a block of the batch, or
 # the whole graph with zoff = 0); node i hears indices[indptr[i]:indptr[i+1]].
 # ---------------------------------------------------------------------------
+@njit(inline="always", **JIT)
+def row_sum4(src, col, nd, indptr, indices, row, zoff, self_row):
+    """Columns col..col+nd (nd <= 4) of src summed over the CSR row ``row`` (entries ``- zoff``)
+    and over src[self_row] if self_row >= 0.  Four scalar sums stay in registers: a sum kept
+    in the output array chains every neighbour's add through a store and a load."""
+    a0 = a1 = a2 = a3 = src.dtype.type(0)
+    if self_row >= 0:
+        a0 = src[self_row, col]
+        if nd > 1:
+            a1 = src[self_row, col + 1]
+        if nd > 2:
+            a2 = src[self_row, col + 2]
+        if nd > 3:
+            a3 = src[self_row, col + 3]
+    for p in range(indptr[row], indptr[row + 1]):
+        j = indices[p] - zoff
+        a0 += src[j, col]
+        if nd > 1:
+            a1 += src[j, col + 1]
+        if nd > 2:
+            a2 += src[j, col + 2]
+        if nd > 3:
+            a3 += src[j, col + 3]
+    return a0, a1, a2, a3
+
+
+@njit(inline="always", **JIT)
+def store4(out, r, col, nd, sums, w):
+    """out[r, col + k] = sums[k] * w for k < nd (constant indices keep the sums in registers)."""
+    out[r, col] = sums[0] * w
+    if nd > 1:
+        out[r, col + 1] = sums[1] * w
+    if nd > 2:
+        out[r, col + 2] = sums[2] * w
+    if nd > 3:
+        out[r, col + 3] = sums[3] * w
+
+
+@njit(inline="always", **JIT)
+def row_sum(src, col0, width, indptr, indices, row, zoff, self_row, out, r, ocol0, w):
+    """out[r, ocol0:ocol0+width] = w * (row_sum4 of columns col0:col0+width), four at a time."""
+    for d0 in range(0, width, 4):
+        nd = min(4, width - d0)
+        store4(out, r, ocol0 + d0, nd, row_sum4(src, col0 + d0, nd, indptr, indices, row, zoff, self_row), w)
+
+
+@njit(inline="always", **JIT)
+def gather_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0):
+    """aggregate_tile's CSR walk for rows i0..i1 (inlined where ``width`` is a constant); an
+    empty ``weight`` weighs every row 1."""
+    weighted = weight.shape[0] > 0
+    for r in range(i1 - i0):
+        i = i0 + r
+        w = weight[i] if weighted else src.dtype.type(1)
+        row_sum(src, col0, width, indptr, indices, i, zoff, i - zoff if self_msg else -1, out, r, ocol0, w)
+
+
 @njit(**JIT)
 def aggregate_tile(src, col0, width, sums, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0):
     """out[r, ocol0:ocol0+width] = weight[i] * (sum over row i [and i itself] of src[j, col0:]), i = i0 + r.
 
     ``sums`` holds the row sums already (rows ``i - zoff``: the dense path) or is empty
     (then the sum walks the CSR row).  The weight decides the aggregation (mean: 1/degree).
+    The narrow widths of messages get a copy of the walk each, compiled for that width:
+    with the width a run-time value the sums lose their registers.
     """
-    dense = sums.shape[0] > 0
-    for r in range(i1 - i0):
-        i = i0 + r
-        zi = i - zoff
-        w = weight[i]
-        if dense:
+    if sums.shape[0] > 0:
+        for r in range(i1 - i0):
             for d in range(width):
-                out[r, ocol0 + d] = sums[zi, d] * w
-            continue
-        # row by row: each neighbour's columns are read together (one cache line), its index once
-        for d in range(width):
-            out[r, ocol0 + d] = src[zi, col0 + d] if self_msg else src.dtype.type(0)
-        for p in range(indptr[i], indptr[i + 1]):
-            j = indices[p] - zoff
-            for d in range(width):
-                out[r, ocol0 + d] += src[j, col0 + d]
-        for d in range(width):
-            out[r, ocol0 + d] *= w
+                out[r, ocol0 + d] = sums[i0 + r - zoff, d] * weight[i0 + r]
+    elif width == 3:
+        gather_rows(src, col0, 3, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+    elif width == 2:
+        gather_rows(src, col0, 2, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+    elif width == 4:
+        gather_rows(src, col0, 4, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+    elif width == 1:
+        gather_rows(src, col0, 1, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+    else:
+        gather_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
 
 
 @njit(**JIT)
@@ -173,12 +228,5 @@ def transpose_tile(g, tindptr, tindices, self_msg, i0, i1, zoff, out, ocol0):
     The transpose of the neighbour sum: ``g`` holds each receiver's (already weighted)
     cotangent; the CSR transpose (tindptr, tindices) lists, for sender j, who hears it.
     """
-    width = g.shape[1]
-    for j in range(i0, i1):
-        zj = j - zoff
-        for d in range(width):
-            out[zj, ocol0 + d] = g[zj, d] if self_msg else g.dtype.type(0)
-        for p in range(tindptr[j], tindptr[j + 1]):
-            i = tindices[p] - zoff
-            for d in range(width):
-                out[zj, ocol0 + d] += g[i, d]
+    aggregate_tile(g, 0, g.shape[1], np.empty((0, 0), g.dtype), tindptr, tindices, np.empty(0, g.dtype), self_msg, i0, i1, zoff,
+                   out[i0 - zoff:i1 - zoff], ocol0)

@@ -137,14 +137,15 @@ def send_tile(theta, dims, zin, u, i0, i1, zoff, C, slot, r0, r1):
 
 
 @njit(**JIT)
-def update_tile(theta, dims, zin, u, S, sums, graph, i0, i1, zoff, C, slot, r0, r1):
+def update_tile(theta, dims, zin, u, S, sums, graph, i0, i1, zoff, C, slot, r0, r1, msrc, mcol0):
     """Phase 3 for nodes i0..i1: k (n, dz) (for the MP-NODE a view of its feature-major
-    result).  S: what everyone sent (L2S, rows ``i - zoff``)."""
+    result).  S: what everyone sent (L2S, rows ``i - zoff``); msrc[:, mcol0:]: the MP-NODE's
+    messages (zin itself, or a compact copy: mpnode_field.update_tile)."""
     if dims[KIND] == L2S:
         return l2s_field.update_tile(theta, dims, S, sums, graph, i0, i1, zoff, C[1][slot, r0:r1],
                                      C[3][slot, r0:r1], C[4][slot, r0:r1])
     return mpnode_field.update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, C[0][slot, r0:r1],
-                                    C[1][slot, r0:r1], C[2][slot, r0:r1], zin, dims[DX]).T
+                                    C[1][slot, r0:r1], C[2][slot, r0:r1], msrc, mcol0).T
 
 
 @njit(**JIT)
@@ -167,7 +168,7 @@ def stage_range(stage, h, theta, dims, z, zin, zout, acc, u, graph, lo, hi, zoff
     for i0 in range(lo, hi, TILE):
         i1 = min(hi, i0 + TILE)
         K = update_tile(theta, dims, zin, u, C[2][stage], sums[:n_dense], graph, i0, i1, zoff, C, stage,
-                        i0 - zoff, i1 - zoff)
+                        i0 - zoff, i1 - zoff, zin, dx)
         fold_tile(stage, h, K, z, zout, acc, i0, i1, zoff)
 
 
@@ -385,10 +386,7 @@ def rollout_stagewise(theta, dims, z0, U, graph, nsub, hstep, out, states, zend)
                                                      C[1][0], C[2][0], msg, 0).T
                     fold_tile(stage, h, K, z, zout, acc, i0, i1, 0)
                     if kind != L2S:  # the next stage's messages: zout's (stage 3: the new z's)
-                        nxt = z if stage == 3 else zout
-                        for i in range(i0, i1):
-                            for d in range(dm):
-                                mnext[i, d] = nxt[i, dx + d]
+                        copy_messages(z if stage == 3 else zout, dx, mnext, i0, i1)
                 msg, mnext = mnext, msg
             j += 1
             if keep:
@@ -397,13 +395,26 @@ def rollout_stagewise(theta, dims, z0, U, graph, nsub, hstep, out, states, zend)
     zend[:] = z
 
 
+@njit(**JIT)
+def copy_messages(z, dx, msg, i0, i1):
+    """msg[i] = the message columns of z[i] for nodes i0..i1: the compact copy the next stage's
+    neighbour sums read (its random reads touch half the memory of z's rows)."""
+    for i in range(i0, i1):
+        for d in range(msg.shape[1]):
+            msg[i, d] = z[i, dx + d]
+
+
 @njit(parallel=True, **JIT)
-def substep_tiles(h, theta, dims, z, za, zb, acc, u, graph, C):
-    """One RK4 step of a whole graph, keeping every stage's caches C (4, M, .) for the VJP."""
+def substep_tiles(h, theta, dims, z, za, zb, acc, u, graph, C, msg, mnext):
+    """One RK4 step of a whole graph, keeping every stage's caches C (4, M, .) for the VJP;
+    msg, mnext (M, dm): the MP-NODE's message copies (as rollout_stagewise's)."""
     M = z.shape[0]
-    kind = dims[KIND]
+    kind, dx = dims[KIND], dims[DX]
     ntiles = (M + STAGE_TILE - 1) // STAGE_TILE
     none = np.empty((0, 0), z.dtype)
+    if kind != L2S:
+        for k in prange(ntiles):
+            copy_messages(z, dx, msg, k * STAGE_TILE, min(M, (k + 1) * STAGE_TILE))
     for stage in range(4):
         zin, zout = stage_arrays(stage, z, za, zb)
         if kind == L2S:
@@ -414,8 +425,11 @@ def substep_tiles(h, theta, dims, z, za, zb, acc, u, graph, C):
         for k in prange(ntiles):
             i0 = k * STAGE_TILE
             i1 = min(M, i0 + STAGE_TILE)
-            K = update_tile(theta, dims, zin, u, C[2][stage], none, graph, i0, i1, 0, C, stage, i0, i1)
+            K = update_tile(theta, dims, zin, u, C[2][stage], none, graph, i0, i1, 0, C, stage, i0, i1, msg, 0)
             fold_tile(stage, h, K, z, zout, acc, i0, i1, 0)
+            if kind != L2S and stage < 3:
+                copy_messages(zout, dx, mnext, i0, i1)
+        msg, mnext = mnext, msg
 
 
 @njit(parallel=True, **JIT)
@@ -441,6 +455,8 @@ def vjp_stagewise(theta, dims, U, graph, tgraph, nsub, hstep, states, GX, gtheta
     gh0 = np.empty((M if kind == L2S else 0, dims[HIDDEN]), GX.dtype)
     gthetas[:] = 0
     gz = np.zeros_like(z)
+    msg = np.empty((M if kind != L2S else 0, dims[DM]), GX.dtype)
+    mnext = np.empty_like(msg)
     gnew, gbuf0, gbuf1 = np.empty_like(z), np.empty_like(z), np.empty_like(z)
     j = states.shape[0] - 1
     for t in range(T - 1, -1, -1):
@@ -449,7 +465,7 @@ def vjp_stagewise(theta, dims, U, graph, tgraph, nsub, hstep, states, GX, gtheta
         for s in range(nsub[t] - 1, -1, -1):
             j -= 1
             z[:] = states[j]
-            substep_tiles(h, theta, dims, z, za, zb, acc, U[t], graph, C)
+            substep_tiles(h, theta, dims, z, za, zb, acc, U[t], graph, C, msg, mnext)
             gnew[:] = gz
             gnext, gin = gbuf0, gbuf1
             for stage in range(3, -1, -1):

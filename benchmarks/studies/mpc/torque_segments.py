@@ -1,0 +1,94 @@
+"""Short quad3 flights whose torques the state does not decide: segments of --steps steps started
+from states of a scene file's flights (trajectory and step drawn at random), each flown by that
+trajectory's own controller (its start, goal and gain factors from the file's aux/) with the
+scene's excitation (`data_gen.quadrotor.excitation`: per quadrotor and pair of steps a collective
+offset N(0, --collective^2) and a zero-sum torque doublet) but torques larger than a whole flight
+survives, --torque N per rotor, plus the scene's 0.03 N noise.  Short segments let the torques be
+large: the attitude loop is weak at dt = 0.1 s, and such torques over a whole flight tilt a
+quadrotor far beyond the scene's tilts (docs/evidence/control.md).  A segment that tilts a quadrotor beyond --max-tilt degrees (or whose
+solver fails) is re-drawn from its own generator.
+
+Segment j draws everything from SeedSequence(--seed, spawn_key=(j,)).  Train on it beside the
+scene's file, so that the model still predicts the scene's flights:
+
+    python benchmarks/studies/mpc/torque_segments.py quad3.h5 OUT.h5 [-B 4000] [--steps 10] \\
+        [--torque 0.3] [--collective 0.3]
+"""
+import argparse
+import math
+
+import numpy as np
+
+from data_gen import quadrotor as quad
+from mpnode import read_trajectories, write_trajectories
+from mpnode.base.errors import NumericalError
+from mpnode.data import Trajectories
+
+
+def segment(rng, data, a, physics):
+    """One segment: dict x (T+1, n, 13), u (T, n, 4), load (T+1, 6), or None when it tipped over."""
+    n, dt = data.n_nodes, data.dt
+    b, k0 = rng.integers(data.n_trajectories), rng.integers(data.horizon - 1)
+    aux = data.aux
+    ref = quad.Reference(n, aux["load_start"][b], aux["load_goal"][b], physics, quad.CONTROL)
+    control = quad.Controller(n, ref, physics, quad.CONTROL, dt, aux["gain_scale"][b])
+    y = quad.pack(data.x[b, k0], aux["load"][b, k0])
+    ys, us, extra = [y], [], np.zeros((2, n, quad.CONTROL_DIM))
+    hold = np.repeat(data.u[b, k0].mean(axis=1, keepdims=True), quad.CONTROL_DIM, axis=1)
+    for s in range(a.steps):
+        t = (k0 + s) * dt
+        if a.open_loop:  # the start's collective thrusts without torques, held, plus fresh offsets every step
+            F = np.clip(hold + quad.excitation(rng, n, a.collective, a.torque / a.collective)[0],
+                        0.0, physics.F_max)
+        else:
+            F, _ = control(t, quad.unpack(y, n)[0])
+            F = quad.disturbed_thrusts(rng, s, F, extra, a.collective, a.torque / a.collective,
+                                       quad.CONTROL["thrust_noise"], physics.F_max)
+        try:
+            y = quad.step(physics, y, F, t, dt)
+        except NumericalError:
+            return None
+        if np.max(quad.tilt(quad.unpack(y, n)[0][:, 3:7])) > math.radians(a.max_tilt):
+            return None
+        ys.append(y)
+        us.append(F)
+    ys = np.stack(ys)
+    return dict(x=ys[:, :13 * n].reshape(-1, n, 13), u=np.stack(us), load=ys[:, 13 * n:])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene_file", help="a quad3 file of `mpnode generate` (its flights' states and aux/)")
+    ap.add_argument("output")
+    ap.add_argument("-B", "--segments", type=int, default=4000)
+    ap.add_argument("--steps", type=int, default=10, help="steps per segment")
+    ap.add_argument("--torque", type=float, default=0.3, help="std (N) of the per-rotor torque doublet's draws")
+    ap.add_argument("--collective", type=float, default=0.3, help="std (N) of the collective offset (> 0)")
+    ap.add_argument("--open-loop", action="store_true",
+                    help="no controller: the start's collective thrusts held without torques, a fresh collective offset "
+                         "and torque pattern every step (thrusts no state decides, not even through the controller)")
+    ap.add_argument("--max-tilt", type=float, default=50.0, help="re-draw a segment tilting beyond this (deg)")
+    ap.add_argument("--seed", type=int, default=1)
+    a = ap.parse_args()
+    data, physics = read_trajectories(a.scene_file), quad.Physics()
+    runs, redrawn = [], 0
+    for j in range(a.segments):
+        rng = np.random.default_rng(np.random.SeedSequence(a.seed, spawn_key=(j,)))
+        while (r := segment(rng, data, a, physics)) is None:
+            redrawn += 1
+        runs.append(r)
+    traj = Trajectories(x=np.stack([r["x"] for r in runs]), u=np.stack([r["u"] for r in runs]),
+                        graphs=data.graphs[:1], dt=data.dt, system=quad.SYSTEM,
+                        attrs={**quad.PARAMS, "scene": "quad3", "seed": a.seed, "redrawn": redrawn,
+                               "segment_torque": a.torque, "segment_collective": a.collective,
+                               "segment_source": a.scene_file,
+                               "description": "quad3 segments with torque offsets "
+                                              "(benchmarks/studies/mpc/torque_segments.py)"},
+                        params=quad.draw_params(None, data.n_nodes, None),
+                        aux={"load": np.stack([r["load"] for r in runs])})
+    write_trajectories(a.output, traj)
+    print(f"wrote {a.output}: {a.segments} segments of {a.steps} steps, {redrawn} re-drawn")
+
+
+if __name__ == "__main__":
+    main()
