@@ -241,6 +241,7 @@ def test_the_quadrotor_recipe_and_its_fine_tuning_normalisation(tmp_path):
     assert res.exit_code == 0 and "message_dim 13" in res.output, res.output
     src = Model.load(tmp_path / "src.h5")
     assert src.spec.message_dim == 13 and training_config(tmp_path / "src.h5").lr == 1e-2
+    assert training_config(tmp_path / "src.h5").schedule == "cosine"  # decays over the user's budget
     # fine-tuning a swarm model on a new size refits its normalisation unless told to keep it
     assert finetune_recipe("auto", "mpnode", "quadrotor_load")["norm"] == "refit"
     assert "norm" not in finetune_recipe("auto", "mpnode", "lorenz") and finetune_recipe("paper") == {}

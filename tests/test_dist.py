@@ -129,6 +129,19 @@ def test_a_bad_sweep_file_names_the_key(data, text, field):
         sweep_file(data, "bad.toml", text)
 
 
+def test_test_points_refuse_the_cosine_schedule_a_recipe_chooses(tmp_path):
+    # recipe auto decays the quadrotor swarm's learning rate over the run; test points train it in
+    # segments, each of which would end the decay: refused before any run, as a cosine in the file is
+    write_trajectories(tmp_path / "q3.h5", generate(small("quad3", 3, 2), workers=1))
+    write_trajectories(tmp_path / "q3_test.h5", generate(small("quad3", 2, 2, seed=5), workers=1))
+    text = 'data = ["q3.h5"]\ntest = ["q3_test.h5"]\ntest_points = 2\n'
+    with pytest.raises(InputError, match="test_points.*cosine schedule recipe auto chooses for quadrotor_load"):
+        sweep_file(tmp_path, "auto.toml", text)
+    assert sweep_file(tmp_path, "paper.toml", 'recipe = "paper"\n' + text).runs[0].test_points == 2
+    told = sweep_file(tmp_path, "plateau.toml", text + '[train]\nschedule = "plateau"\n')
+    assert told.runs[0].options["schedule"] == "plateau"
+
+
 # ---- on a LocalCluster ---------------------------------------------------------------------
 @needs_dask
 @pytest.mark.parametrize("scene", ["lorenz3", "quad3"])

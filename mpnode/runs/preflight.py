@@ -14,6 +14,7 @@ from mpnode.base.errors import InputError
 from mpnode.data import read_trajectories
 from mpnode.model.config import configured
 from mpnode.training.batches import TrainingData, check_same_kind, split_settings
+from mpnode.training.recipes import recipe
 from mpnode.training.sizes import check_training_memory
 
 from .run import MODEL_OPTIONS, split_options
@@ -45,6 +46,7 @@ def _check_run(p, model, parent_data, load, prepared, where):
         raise InputError(where, "data", f"the files have {sorted({t.n_nodes for t in datasets})} nodes",
                          "one node count for a plain neural ODE (kind node)")
     warnings = [w for t in p.test for w in _check_test(load(t), os.path.relpath(t), datasets[0], model.kind)]
+    _check_points_schedule(p, model, datasets[0].system, where)
     config = split_options(p.options, where)[1]
     key = (tuple(p.data), split_settings(config))
     if key not in prepared:  # runs on the same data and split share the checks of their data
@@ -54,6 +56,17 @@ def _check_run(p, model, parent_data, load, prepared, where):
                       1.0 if model.uses_mean_degree else None)
     check_training_memory(spec, prepared[key], config, model.dtype)
     return warnings
+
+
+def _check_points_schedule(p, model, system, where):
+    """InputError for test points on a run whose recipe chooses the cosine schedule (the sweep
+    refuses a cosine set in the file itself): the run trains in segments, each would end it."""
+    if not p.test_points or p.parent is not None or "schedule" in p.options:
+        return
+    if recipe(p.recipe, system, model.kind, model.messages).get("schedule") == "cosine":
+        raise InputError(where, "test_points", f"cannot be used with the cosine schedule recipe {p.recipe} chooses "
+                         f"for {system} data (the run trains in segments, and each would end the schedule)",
+                         'schedule = "plateau" for the run, or no test_points')
 
 
 def _check_test(test, name, data, kind):
