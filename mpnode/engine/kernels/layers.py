@@ -202,8 +202,9 @@ def aggregate_tile(src, col0, width, sums, indptr, indices, weight, self_msg, i0
 
     ``sums`` holds the row sums already (rows ``i - zoff``: the dense path) or is empty
     (then the sum walks the CSR row).  The weight decides the aggregation (mean: 1/degree).
-    The narrow widths of messages get a copy of the walk each, compiled for that width:
-    with the width a run-time value the sums lose their registers.
+    Narrow rows (messages) are summed in registers, widths 1-4 each by a copy of the walk
+    compiled for that width (with the width a run-time value the sums lose their registers);
+    wide rows (L2S's hidden width) add each neighbour's whole row, which vectorises.
     """
     if sums.shape[0] > 0:
         for r in range(i1 - i0):
@@ -217,8 +218,27 @@ def aggregate_tile(src, col0, width, sums, indptr, indices, weight, self_msg, i0
         gather_rows(src, col0, 4, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
     elif width == 1:
         gather_rows(src, col0, 1, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
-    else:
+    elif width <= 8:
         gather_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+    else:
+        add_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+
+
+@njit(inline="always", **JIT)
+def add_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0):
+    """aggregate_tile's CSR walk for wide rows: each neighbour's row added into the output row."""
+    weighted = weight.shape[0] > 0
+    for r in range(i1 - i0):
+        i = i0 + r
+        for d in range(width):
+            out[r, ocol0 + d] = src[i - zoff, col0 + d] if self_msg else src.dtype.type(0)
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p] - zoff
+            for d in range(width):
+                out[r, ocol0 + d] += src[j, col0 + d]
+        if weighted:
+            for d in range(width):
+                out[r, ocol0 + d] *= weight[i]
 
 
 @njit(**JIT)
