@@ -438,6 +438,9 @@ def test_locality_order_is_invisible_to_users():
     np.testing.assert_allclose(gtheta, gtheta_, rtol=1e-12, atol=1e-12 * np.abs(gtheta_).max())
     np.testing.assert_allclose(gx0, gx0_, rtol=1e-12, atol=1e-12 * np.abs(gx0_).max())
     np.testing.assert_allclose(gu, gu_, rtol=1e-12, atol=1e-12 * np.abs(gu_).max())
+    gtheta2, gx02 = vjp(gx)  # training's call: no controls' cotangent to put back in order
+    np.testing.assert_array_equal(gtheta2, gtheta)
+    np.testing.assert_array_equal(gx02, gx0)
 
 
 def test_locality_order_only_where_it_brings_neighbours_together():

@@ -203,5 +203,6 @@ def _reverse(spec, theta, plan, u, grid, states, gx, controls=False):
                                plan.dense_A, plan.dense_AT, nsub, hstep, states, gx, gthetas, gx0, gu)
     if plan.order is not None:
         gx0[plan.order] = gx0.copy()
-        gu = plan.to_user_order(gu)
-    return gthetas.sum(axis=0, dtype=theta.dtype), gx0, gu if controls else None
+    if not controls:
+        return gthetas.sum(axis=0, dtype=theta.dtype), gx0, None
+    return gthetas.sum(axis=0, dtype=theta.dtype), gx0, plan.to_user_order(gu)
