@@ -115,8 +115,10 @@ class Plan:
     def to_kernel_order(self, a, axis=0):
         """``a`` with its node axis (0, or 1 of a (T, M, ...) array) in the kernels' order (``a``
         itself when there is no reordering)."""
-        if self.order is None or axis == 0:
-            return a if self.order is None else np.take(a, self.order, axis=0)
+        if self.order is None:
+            return a
+        if axis == 0:
+            return np.take(a, self.order, axis=0)
         from .kernels import rows_to_kernel_order
 
         a = np.ascontiguousarray(a)

@@ -94,8 +94,8 @@ def _touched(shape, dtype):
     """An array for the kernels to write, its memory touched first, here, in one pass.
 
     Fresh memory is mapped on first touch; taken inside the kernels' parallel loops, one output
-    slice at a time, those page faults cost a million-node rollout a fifth of its time
-    (docs/evidence/speed.md#one-large-graph-up-to-1000000-nodes), against a few percent here."""
+    slice at a time, those page faults cost a million-node rollout a fifth of its time, against
+    under one percent here (docs/evidence/speed.md#a-million-nodes-where-the-time-went)."""
     a = np.empty(shape, dtype=dtype)
     a.fill(0)
     return a
