@@ -113,16 +113,34 @@ class Plan:
         return self._transposed
 
     def to_kernel_order(self, a, axis=0):
-        """``a`` with its node axis in the kernels' order (``a`` itself when there is no reordering)."""
-        return a if self.order is None else np.take(a, self.order, axis=axis)
+        """``a`` with its node axis (0, or 1 of a (T, M, ...) array) in the kernels' order (``a``
+        itself when there is no reordering)."""
+        if self.order is None:
+            return a
+        if axis == 0:
+            return np.take(a, self.order, axis=0)
+        from .kernels import rows_to_kernel_order
+
+        a = np.ascontiguousarray(a)
+        out = np.empty_like(a)
+        if a.size:
+            rows_to_kernel_order(_slices(a), self.order, _slices(out))
+        return out
 
     def to_user_order(self, a):
-        """Put the node axis (axis 1) of ``a`` (T, M, .) back in the user's order, in place,
-        one time slice at a time (no second copy of a large rollout)."""
-        if self.order is not None:
-            for t in range(a.shape[0]):
-                a[t, self.order] = a[t].copy()
+        """Put the node axis (axis 1) of ``a`` (T, M, ...), C-contiguous, back in the user's order,
+        in place, one time slice at a time (no second copy of a large rollout)."""
+        if self.order is not None and a.size:
+            from .kernels import rows_to_user_order
+
+            rows = _slices(a)
+            rows_to_user_order(rows, self.order, np.empty_like(rows[0]))
         return a
+
+
+def _slices(a):
+    """A (T, M, ...) array as (T, M, c) rows (a view)."""
+    return a.reshape(a.shape[0], a.shape[1], -1)
 
 
 #: one graph of fewer nodes keeps its order: its states fit in the caches anyway

@@ -74,10 +74,11 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
     plan = plan_for(graph, spec, theta.dtype, driver, ordering)
     nsub, hstep = time_grid(spec, n_steps, m, theta.dtype, intervals)
     z0, u = plan.to_kernel_order(z0), np.ascontiguousarray(plan.to_kernel_order(u, axis=1))
-    hstep = np.ascontiguousarray(plan.to_kernel_order(hstep, axis=1))
-    out = np.empty((n_steps + 1, m, spec.state_dim), dtype=theta.dtype)
+    if intervals is not None:  # a regular grid's step sizes are the same at every node
+        hstep = np.ascontiguousarray(plan.to_kernel_order(hstep, axis=1))
+    out = _touched((n_steps + 1, m, spec.state_dim), theta.dtype)
     n_states = int(nsub.sum()) + 1 if keep_states else 0
-    states = np.empty((n_states, m if keep_states else 0, spec.state_width), dtype=theta.dtype)
+    states = _touched((n_states, m if keep_states else 0, spec.state_width), theta.dtype)
     zend = np.empty_like(z0)
     g = (plan.csr.indptr, plan.csr.indices, plan.weight)
     with single_threaded_blas():
@@ -87,6 +88,17 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
             kernels.rollout_blocks(theta, spec.dims, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off,
                                    plan.dense_A, nsub, hstep, out, states, zend)
     return plan.to_user_order(out), states, plan.to_user_order(zend[None])[0], u, (nsub, hstep), plan
+
+
+def _touched(shape, dtype):
+    """An array for the kernels to write, its memory touched first, here, in one pass.
+
+    Fresh memory is mapped on first touch; taken inside the kernels' parallel loops, one output
+    slice at a time, those page faults cost a million-node rollout a fifth of its time, against
+    under one percent here (docs/evidence/speed.md#a-million-nodes-where-the-time-went)."""
+    a = np.empty(shape, dtype=dtype)
+    a.fill(0)
+    return a
 
 
 def initial_state(spec, x0, dtype=None):
@@ -203,5 +215,6 @@ def _reverse(spec, theta, plan, u, grid, states, gx, controls=False):
                                plan.dense_A, plan.dense_AT, nsub, hstep, states, gx, gthetas, gx0, gu)
     if plan.order is not None:
         gx0[plan.order] = gx0.copy()
-        gu = plan.to_user_order(gu)
-    return gthetas.sum(axis=0, dtype=theta.dtype), gx0, gu if controls else None
+    if not controls:
+        return gthetas.sum(axis=0, dtype=theta.dtype), gx0, None
+    return gthetas.sum(axis=0, dtype=theta.dtype), gx0, plan.to_user_order(gu)

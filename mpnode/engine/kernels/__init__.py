@@ -3,7 +3,7 @@
 Modules: ``layers`` (dense layers, tanh, neighbour sums), ``feature_major`` (products on
 (width, n) tiles, compiled per chunk width: the MP-NODE field's layers and the dense neighbour
 sums), ``mpnode_field`` and ``l2s_field`` (one field each: send, update and their VJPs), ``rk4``
-(the drivers).
+(the drivers), ``reorder`` (node rows between the user's order and the kernels').
 `mpnode.engine` is the Python entry point; nothing else calls these directly.
 
 Numba caches each compiled function under its own source file's hash, but a compiled
@@ -38,6 +38,7 @@ try:
         dense_tanh_backward,
         dense_tanh_forward,
     )
+    from .reorder import rows_to_kernel_order, rows_to_user_order  # noqa: F401
     from .rk4 import (  # noqa: F401
         STAGE_TILE,
         TILE,
