@@ -133,6 +133,8 @@ class Plan:
         if self.order is not None and a.size:
             from .kernels import rows_to_user_order
 
+            if not a.flags.c_contiguous:  # a reshaped copy would be reordered instead of ``a``
+                raise ValueError("to_user_order reorders in place: the array must be C-contiguous")
             rows = _slices(a)
             rows_to_user_order(rows, self.order, np.empty_like(rows[0]))
         return a
