@@ -11,6 +11,7 @@ from mpnode.base.options import aliases
 from mpnode.engine.spec import AGGREGATIONS, KINDS, LINEAR_TARGETS
 from mpnode.model.config import DTYPES, ModelConfig
 from mpnode.training import TrainConfig
+from mpnode.training.config import DEFAULT_EPOCHS, epoch_cap
 from mpnode.training.recipes import AUTO_ALL, FINETUNE_AUTO
 
 from .eval_cmd import check_plot, plot_option
@@ -50,8 +51,9 @@ def training_options(f):
     """The optimisation flags shared by train and finetune; defaults are TrainConfig's."""
     d = DEFAULT
     options = [
-        click.option("--epochs", type=click.IntRange(min=0), default=d.epochs, show_default=True,
-                     help="Passes over the training trajectories."),
+        click.option("--epochs", type=click.IntRange(min=0), default=d.epochs,
+                     help=f"Passes over the training trajectories.  Default: {DEFAULT_EPOCHS}, or with --time-limit as "
+                          "many as the time limit allows (it is the budget)."),
         click.option("--time-limit", type=Duration(),
                      help="Stop cleanly after this long (best model and checkpoint saved): minutes, or 90s, 1.5h."),
         click.option("--batch-size", type=click.IntRange(min=1), default=d.batch_size,
@@ -208,6 +210,7 @@ def run_with_progress(epochs, time_limit, output, call, plot=None):
     from mpnode.training.log import log_path
 
     state = {"bar": None}
+    epochs = epoch_cap(epochs, time_limit)
 
     with contextlib.ExitStack() as stack:
         def progress(record):  # the bar starts with the first epoch: a run refused before it prints nothing
@@ -242,9 +245,11 @@ BAR = 1000
 
 
 def done_fraction(record, epochs, time_limit):
-    """How much of the run an epoch's log record has done, in [0, 1]: of the epochs, or of the
-    time limit (seconds) when that ends the run first."""
-    done = record["epoch"] / epochs if epochs else 1.0
+    """How much of the run an epoch's log record has done, in [0, 1]: of the epochs (None: no cap),
+    or of the time limit (seconds) when that ends the run first."""
+    done = 0.0
+    if epochs is not None:
+        done = record["epoch"] / epochs if epochs else 1.0
     if time_limit:
         done = max(done, record["elapsed"] / time_limit)
     return min(done, 1.0)

@@ -408,6 +408,7 @@ def test_the_progress_bar_follows_whichever_budget_ends_the_run_first():
     assert done_fraction({"epoch": 30, "elapsed": 1.0}, 40, 600.0) == pytest.approx(0.75)  # the epochs
     assert done_fraction({"epoch": 3, "elapsed": 99.0}, 40, None) == pytest.approx(0.075)
     assert done_fraction({"epoch": 50, "elapsed": 30.0}, 40, 20.0) == 1.0
+    assert done_fraction({"epoch": 9000, "elapsed": 5.0}, None, 20.0) == pytest.approx(0.25)  # no cap: the time
 
 
 def test_eval_says_slower_when_the_learned_model_is_slower():

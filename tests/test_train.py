@@ -348,6 +348,21 @@ def test_the_time_limit_counts_the_whole_run_across_resumes(tmp_path, tiny_linea
     assert again.status == "time_limit" and again.epoch == 4
 
 
+def test_a_time_limit_without_epochs_is_the_whole_budget(tmp_path, tiny_linear, fresh, monkeypatch):
+    from mpnode.training import config
+
+    monkeypatch.setattr(config, "DEFAULT_EPOCHS", 3)
+    traj = tiny_linear()
+    capped = train.fit(fresh(), [traj], train.TrainConfig(batch_size=8), tmp_path / "c.h5")
+    assert capped.status == "completed" and capped.epoch == 3
+    timed = train.fit(fresh(), [traj], train.TrainConfig(batch_size=8, time_limit=1.0, schedule="cosine"),
+                      tmp_path / "t.h5")
+    assert timed.status == "time_limit" and timed.epoch > 3  # not stopped by the cap it was not given
+    assert timed.lr < 1e-4  # the cosine decay spread over the time limit reached its end
+    told = train.fit(fresh(), [traj], train.TrainConfig(epochs=2, batch_size=8, time_limit=60.0), tmp_path / "e.h5")
+    assert told.status == "completed" and told.epoch == 2
+
+
 def test_the_scaled_aggregation_divides_by_the_training_graphs_mean_in_degree(multi_graph_file):
     from mpnode.model.config import ModelConfig
     from mpnode.runs import run as runs

@@ -38,10 +38,11 @@ from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
 from mpnode.base.tomlfile import load_toml
 from mpnode.training import recipes, state_path
+from mpnode.training.config import DEFAULT_EPOCHS
 from mpnode.training.log import log_path
 
 from .preflight import check_out_folder, check_runs
-from .run import MODEL_OPTIONS, OPTION_NAMES, TRAIN_OPTIONS, parse_duration, split_options
+from .run import MODEL_OPTIONS, OPTION_NAMES, parse_duration, split_options
 
 #: what a sweep file may hold at its top level
 TOP_KEYS = ("data", "test", "test_points", "recipe", "train", "grid", "run")
@@ -333,9 +334,11 @@ def run_task(plan, test_names, parent, *files):
 
 def point_epochs(epochs, test_points):
     """The epochs a run trains to in turn: with test points, 0 and ``test_points`` evenly spaced
-    epochs up to ``epochs`` (its best model is evaluated at each), else ``epochs`` alone."""
+    epochs up to ``epochs`` (unset: DEFAULT_EPOCHS; its best model is evaluated at each), else
+    ``epochs`` alone (unset: the run's own cap)."""
     if not test_points:
         return [epochs]
+    epochs = DEFAULT_EPOCHS if epochs is None else epochs
     return sorted({0} | {round(epochs * k / test_points) for k in range(1, test_points + 1)})
 
 
@@ -345,7 +348,7 @@ def _train(plan, segment, resume, tests, test_names, folder):
     points = _read_points(folder) if resume else []
     done = {p["epoch"] for p in points}
     result = None
-    for stop in point_epochs(plan["options"].get("epochs", TRAIN_OPTIONS["epochs"]), plan["test_points"]):
+    for stop in point_epochs(plan["options"].get("epochs"), plan["test_points"]):
         if stop in done:
             continue
         result = segment(stop, resume)
@@ -357,7 +360,7 @@ def _train(plan, segment, resume, tests, test_names, folder):
         if result.status != "completed":
             break
     if result is None:  # stopped after its last point was recorded: the finished training, as it is
-        result = segment(plan["options"].get("epochs", TRAIN_OPTIONS["epochs"]), True)
+        result = segment(plan["options"].get("epochs"), True)
     return result, points
 
 

@@ -15,12 +15,26 @@ SCHEDULES = ("plateau", "cosine")
 NORMS = ("fit", "refit", "keep")
 
 
+#: the passes over the training trajectories of a run given neither ``epochs`` nor a time limit (the
+#: MP-NODE paper's)
+DEFAULT_EPOCHS = 4000
+
+
+def epoch_cap(epochs, time_limit):
+    """The passes a run may make: ``epochs`` when given; unset, none beyond the time limit when
+    there is one (the budget the user gave), else DEFAULT_EPOCHS.  None: no cap."""
+    if epochs is not None:
+        return epochs
+    return None if time_limit is not None else DEFAULT_EPOCHS
+
+
 @dataclass(kw_only=True)
 class TrainConfig:
     """Everything that decides a training run besides the model and the data.
 
     time_limit is the run's total training time in seconds (None: no limit; a resumed run
-    counts the time before it, as epochs counts the epochs before it); norm is "fit"
+    counts the time before it, as epochs counts the epochs before it); epochs None: as many
+    as the time limit allows, or DEFAULT_EPOCHS without one (`epoch_cap`); norm is "fit"
     (z-score constants fitted on the training split), "refit" (the same for a trained model,
     whose weights are changed to compute what they did) or "keep" (the model's own constants,
     for finetuning); schedule is "plateau" (cut the learning rate by lr_decay after
@@ -31,7 +45,7 @@ class TrainConfig:
     The defaults are the command line's (`mpnode train --help` says what each does).
     """
 
-    epochs: int = 4000
+    epochs: int = None
     batch_size: int = 128
     lr: float = 1e-3
     beta1: float = 0.9
@@ -77,8 +91,6 @@ class TrainConfig:
         if self.curriculum_epochs < 1:
             bad("curriculum_epochs", f"is {self.curriculum_epochs}", "an integer >= 1")
 
-        if self.epochs < 0:
-            bad("epochs", f"is {self.epochs}", "an integer >= 0")
         if self.batch_size < 1:
             bad("batch_size", f"is {self.batch_size}", "an integer >= 1")
         if not (self.lr > 0 and math.isfinite(self.lr)):
@@ -112,6 +124,11 @@ class TrainConfig:
         return self
 
     @property
+    def epoch_cap(self):
+        """The passes this run may make (None: as many as its time limit allows)."""
+        return epoch_cap(self.epochs, self.time_limit)
+
+    @property
     def split_by(self):
         """The seed of the train/validation split: ``split_seed``, or the run's seed."""
         return self.seed if self.split_seed is None else self.split_seed
@@ -119,7 +136,9 @@ class TrainConfig:
     def _check_types(self):
         """Every option of the right type and sign (the ranges that need more are checked in `check`)."""
         where = "training options"
-        for name in ("epochs", "batch_size", "patience", "max_bad_steps", "seed", "curriculum_epochs", "val_graphs",
+        if self.epochs is not None:
+            self.epochs = check_int(self.epochs, where, "epochs", 0)
+        for name in ("batch_size", "patience", "max_bad_steps", "seed", "curriculum_epochs", "val_graphs",
                      "ensemble", "train_window"):
             setattr(self, name, check_int(getattr(self, name), where, name, 0))
         if self.split_seed is not None:

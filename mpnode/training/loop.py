@@ -202,7 +202,10 @@ def end_of_epoch(state, val, files, notify):
 def budget_used(state):
     """The fraction of the run's budget spent: epochs, or the time limit when that binds first."""
     config = state.config
-    used = state.epoch / config.epochs if config.epochs else 1.0
+    cap = config.epoch_cap
+    used = 0.0  # no cap: the time limit is the budget
+    if cap is not None:
+        used = state.epoch / cap if cap else 1.0
     if config.time_limit is not None:
         used = max(used, state.elapsed / config.time_limit)
     return min(used, 1.0)
@@ -431,8 +434,9 @@ class _Loop:
     def run(self, history):
         """Returns (status, message): completed, time_limit, diverged or interrupted."""
         state, config = self.state, self.state.config
+        cap = config.epoch_cap
         try:
-            while state.epoch < config.epochs:
+            while cap is None or state.epoch < cap:
                 t0 = time.perf_counter()
                 parts, stage, window = self.curriculum.parts_for(state.epoch + 1)
                 stats = run_epoch(state, parts, self.notify)
@@ -450,13 +454,13 @@ class _Loop:
                 if self.progress:
                     self.progress(record)
                 if config.time_limit is not None and state.elapsed >= config.time_limit \
-                        and state.epoch < config.epochs:
+                        and (cap is None or state.epoch < cap):
                     return "time_limit", f"time limit reached after epoch {state.epoch}"
         except Diverged as e:
             return "diverged", str(e)
         except KeyboardInterrupt:
             return "interrupted", f"interrupted during epoch {state.epoch + 1}; the last finished epoch is saved"
-        return "completed", f"trained {config.epochs} epochs"
+        return "completed", f"trained {cap} epochs"
 
 
 def epoch_record(state, stats, val, nmse, improved, seconds, window, stage):
