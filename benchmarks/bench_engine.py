@@ -5,7 +5,9 @@ T = 50, classic RK4) so that the figures compare with it.  For each case and mod
 it prints the FLOP floor -- the field's multiply-adds x 4 stages x steps x nodes at the
 rate of a large GEMM *measured in the same run* (the training step counts 3x the
 forward) -- and our ratio to it.  Medians of >= 7 timed calls after warm-up; float32 and
-2 threads unless told otherwise.
+2 threads unless told otherwise.  ``recomp``: the training step with every step's stages
+recomputed in the reverse pass, over the step with the forward's stage caches kept (the
+engine's choice up to rollout.KEEP_CACHES_BYTES), measured in the same process.
 
 Large graphs (rollout only, B = 1, T = 50; each case in a fresh process so that its
 memory peak is its own): R200k and S6, random 6-regular graphs of 200,000 and 1,000,000
@@ -33,7 +35,7 @@ import networkx as nx
 import numpy as np
 
 from mpnode.base.graph import Graph, block_diagonal
-from mpnode.engine import FieldSpec, forward
+from mpnode.engine import FieldSpec, forward, rollout
 from mpnode.engine.layouts import glorot_init
 from mpnode.training.losses import value_and_grad
 
@@ -170,9 +172,10 @@ def run_case(case, kind, dtype, gflops, profile=False):
     reps = dict(n_min=3, min_total_s=0, warm=False) if big else {}
     first_r, roll, _ = timed(lambda: forward(spec, theta, x[0], graph, n_steps=T, ordering=ordering), **reps)
     peak = _status_mb("VmHWM")
-    train = first_t = float("nan")
+    train = first_t = recomputed = float("nan")
     if not big:
         first_t, train, _ = timed(lambda: value_and_grad(spec, theta, x, graph))
+        recomputed = train_recomputing(lambda: value_and_grad(spec, theta, x, graph))
     fl = 2 * macs_per_node(case, kind) * 4 * T * m / (gflops * 1e9) * 1e3
     r = {"case": case, "label": c["label"], "kind": kind, "dtype": np.dtype(dtype).name, "nodes": m,
          "edges": graph.n_edges, "ordering": ordering,
@@ -181,12 +184,25 @@ def run_case(case, kind, dtype, gflops, profile=False):
          "ns_per_node_step": round(roll * 1e6 / (m * T), 1),
          "floor_ms": round(fl, 3), "train_floor_ms": round(3 * fl, 3),
          "rollout_ratio": round(roll / fl, 2), "train_ratio": round(train / (3 * fl), 2),
+         "train_recomputed_ms": round(recomputed, 3), "recomputed_over_kept": round(recomputed / train, 2),
          "first_call_s": round(max(first_r, first_t) if not big else first_r, 2),
          "rss_before_mb": round(rss_before), "peak_rss_mb": round(peak) if exact_peak else None,
          "rollout_output_mb": round(x.nbytes / 2**20)}
     if profile:
         r.update(stage_profile(case, kind, spec, theta, x[0], graph, ordering, roll))
     return r
+
+
+def train_recomputing(call):
+    """The training step's median ms with the reverse pass recomputing every step's stages
+    instead of reading the forward's kept caches (the engine's way for rollouts whose caches
+    exceed rollout.KEEP_CACHES_BYTES), in the same process as the kept figure."""
+    kept = rollout.KEEP_CACHES_BYTES
+    rollout.KEEP_CACHES_BYTES = 0
+    try:
+        return timed(call)[1]
+    finally:
+        rollout.KEEP_CACHES_BYTES = kept
 
 
 # ---------------------------------------------------------------------------
@@ -259,7 +275,7 @@ def print_row(r):
     print(f"{r['case'] + ' ' + r['label']:<18}{r['kind']:<8}{r['dtype'][5:]:<4}{r['nodes']:>9}"
           f"{r['rollout_ms']:>11.2f}{r['floor_ms']:>9.2f}{r['rollout_ratio']:>6.1f}"
           f"{r['train_step_ms']:>10.2f}{r['train_floor_ms']:>9.2f}{r['train_ratio']:>6.1f}"
-          f"{r['ns_per_node_step']:>9.1f}{mem}", flush=True)
+          f"{r['ns_per_node_step']:>9.1f}{mem}{r['recomputed_over_kept']:>8.2f}", flush=True)
     if "sum_ms" in r:
         print(f"{'':<18}profile: no sums {r['no_sum_ms']:.0f} ms -> sums {r['sum_ms']:.0f}, dense layers "
               f"{r['dense_ms']:.0f}, rest {r['rest_ms']:.0f}; one thread {r['one_thread_ms']:.0f} ms", flush=True)
@@ -284,7 +300,7 @@ def main():
         if not args.json:
             print(f"floor: {dtype.name} GEMM at {gflops:.0f} GFLOP/s (2048^2, measured now); peak = VmHWM MB")
             print(f"{'case':<18}{'kind':<8}{'':<4}{'nodes':>9}{'rollout ms':>11}{'floor':>9}{'x':>6}"
-                  f"{'train ms':>10}{'floor':>9}{'x':>6}{'ns/n-st':>9}{'peak':>8}")
+                  f"{'train ms':>10}{'floor':>9}{'x':>6}{'ns/n-st':>9}{'peak':>8}{'recomp':>8}")
         for case in args.cases.split(","):
             for kind in args.kinds.split(","):
                 if CASES[case].get("big"):

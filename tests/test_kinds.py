@@ -159,3 +159,55 @@ def test_rollout_vjp_with_any_cotangent_matches_finite_differences(driver, name)
 
 def test_node_vjp_matches_finite_differences():
     check_vjp(node_spec(3), block_diagonal([Graph.complete(3)] * 4), 3, seed=10)
+
+
+@pytest.mark.parametrize("name", ["mpnode-mean-self-linear", "l2s-mean-self", "node", "mpnode-irregular"])
+def test_the_reverse_pass_from_kept_stage_caches_is_the_recomputing_one_bit_for_bit(monkeypatch, name):
+    """The block driver's reverse pass reads every step's stage caches from the forward when
+    they fit in rollout.KEEP_CACHES_BYTES, and recomputes them from the kept states otherwise:
+    the same numbers either way (parameters, initial state, controls), for every kind, on
+    dense and CSR blocks, with substeps and with each node's own output times."""
+    from mpnode.engine import rollout
+
+    spec = node_spec(4) if name == "node" else KIND_SPECS.get(name, spec_())
+    graph = block_diagonal([Graph.complete(4)] * 5) if name == "node" else mixed_graph(6, big=220)
+    T = 4
+    theta, x0, u = problem(spec, graph, T, seed=9)
+    iv = spec.dt * np.random.default_rng(10).uniform(0.3, 1.7, (T, graph.n_nodes)) if name == "mpnode-irregular" else None
+    gx = np.random.default_rng(11).standard_normal((T + 1, graph.n_nodes, spec.state_dim))
+
+    def gradients(budget):
+        monkeypatch.setattr(rollout, "KEEP_CACHES_BYTES", budget)
+        x, vjp = engine.forward_with_vjp(spec, theta, x0, graph, u, T, driver="blocks", intervals=iv)
+        return (x,) + vjp(gx, controls=True)
+
+    monkeypatch.setattr(rollout, "_spare_caches", {})
+    kept = gradients(2**30)
+    assert theta.dtype in rollout._spare_caches  # the caches were kept (and given back with the VJP)
+    recomputed = gradients(0)
+    for a, b in zip(kept, recomputed):
+        np.testing.assert_array_equal(a, b)
+    assert np.abs(kept[1]).max() > 0 and np.abs(kept[3]).max() > 0
+
+
+def test_kept_stage_caches_are_reused_once_no_vjp_holds_them(monkeypatch):
+    """A training step's caches go back for the next step's rollout when its VJP is gone (no
+    fresh pages per batch), and a VJP still alive keeps its own."""
+    from mpnode.engine import rollout
+
+    monkeypatch.setattr(rollout, "_spare_caches", {})
+    spec, graph = spec_(), mixed_graph(6, big=220)
+    theta, x0, u = problem(spec, graph, 3, seed=12)
+    _, first = engine.forward_with_vjp(spec, theta, x0, graph, u, 3)
+    _, second = engine.forward_with_vjp(spec, theta, x0, graph, u, 3)
+    assert rollout._spare_caches == {}  # both VJPs alive: two buffers, none spare
+    gx = np.ones((4, graph.n_nodes, spec.state_dim))
+    want = second(gx)
+    del first
+    buf = rollout._spare_caches[theta.dtype]
+    _, third = engine.forward_with_vjp(spec, theta, x0, graph, u, 3)
+    assert rollout._spare_caches == {}  # the third took the first's buffer ...
+    for a, b in zip(third(gx), want):  # ... and computes with it what the second computes with its own
+        np.testing.assert_array_equal(a, b)
+    del third
+    assert rollout._spare_caches[theta.dtype] is buf

@@ -7,14 +7,16 @@ the exact gradient, with respect to the parameters, the initial state and (on re
 the controls, of <gx, rollout> as computed (not of the ODE it approximates).  Losses, windows,
 multiple shooting are the caller's business (`mpnode.training.losses`).  Outputs fall every dt, or
 at each trajectory's own times (``intervals``, see `mpnode.engine.schedule`).  Cost: memory for one
-state per RK4 step (sum of the steps + 1 arrays of (M, dz)); time a few rollouts' worth (forward, recomputed
-stages, and a VJP that costs about twice a forward; docs/evidence/speed.md).  Stage values are recomputed rather
-than stored, so memory does not grow with the hidden width.
+state per RK4 step (sum of the steps + 1 arrays of (M, dz)), and every stage's inputs and activations
+while they fit in KEEP_CACHES_BYTES (beyond, the reverse pass recomputes them, so memory does not grow
+with the hidden width); time a few rollouts' worth (the forward and a VJP that costs about twice a
+forward; docs/evidence/speed.md).
 
 Arrays here are time-major and flat over nodes: x (T+1, M, dx), u (T, M, du).
 `mpnode.model` turns (B, T+1, N, dx) batches into this layout.
 """
 import functools
+import weakref
 from dataclasses import replace
 
 import numpy as np
@@ -61,8 +63,8 @@ def _edgeless(n):
 
 def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, intervals):
     """The forward rollout from the full state z0: (x (n_steps+1, M, dx) and z at the end in
-    the user's node order, states or None, and u, the time grid and the plan as the kernels
-    saw them)."""
+    the user's node order, states, the kept stage caches (None for one large graph) and u,
+    the time grid and the plan as the kernels saw them)."""
     from . import kernels
 
     theta = np.ascontiguousarray(theta)
@@ -81,13 +83,53 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
     states = _touched((n_states, m if keep_states else 0, spec.state_width), theta.dtype)
     zend = np.empty_like(z0)
     g = (plan.csr.indptr, plan.csr.indices, plan.weight)
+    kept = buf = None
     with single_threaded_blas():
         if plan.blocks is None:
             kernels.rollout_stagewise(theta, spec.dims, z0, u, g, nsub, hstep, out, states, zend)
         else:
+            kept, buf = _stage_caches(spec, n_states - 1, m, theta)
             kernels.rollout_blocks(theta, spec.dims, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off,
-                                   plan.dense_A, nsub, hstep, out, states, zend)
-    return plan.to_user_order(out), states, plan.to_user_order(zend[None])[0], u, (nsub, hstep), plan
+                                   plan.dense_A, nsub, hstep, out, states, zend, kept)
+    return plan.to_user_order(out), states, (kept, buf), plan.to_user_order(zend[None])[0], u, (nsub, hstep), plan
+
+
+#: the stage caches of a rollout's every RK4 step are kept for its VJP up to this size: the
+#: reverse pass then skips recomputing the stages, a third of a training step's work
+#: (docs/evidence/speed.md#kept-stage-caches); larger rollouts recompute them, so that memory
+#: stays one state per step.
+KEEP_CACHES_BYTES = 128 * 2**20
+#: dtype -> a buffer for kept stage caches that no VJP holds any more: a training step reuses the
+#: last one's instead of having fresh pages mapped (and faulted in) for every batch
+_spare_caches = {}
+
+
+def _stage_caches(spec, n_rk4_steps, m, theta):
+    """(arrays rollout_blocks fills with every RK4 step's stage caches, rows per
+    `kernels.rk4.block_caches`; the buffer behind them or None).  Arrays without rows when
+    there is nothing to keep: no VJP asked, or more than KEEP_CACHES_BYTES."""
+    from . import kernels
+
+    rows = 4 * n_rk4_steps * m
+    widths = [c.shape[2] for c in kernels.caches(spec.dims, 1, 0, theta)]
+    size = rows * sum(widths)
+    if n_rk4_steps <= 0 or size * theta.itemsize > KEEP_CACHES_BYTES:
+        return tuple(np.empty((0, w), theta.dtype) for w in widths), None
+    lanes = 64 // theta.itemsize  # every array starts on a 64-byte boundary, as the kernels' own
+    buf = _spare_caches.pop(theta.dtype, None)
+    if buf is None or buf.size < size + len(widths) * lanes:
+        buf = np.empty(size + (len(widths) + 1) * lanes, theta.dtype)
+    at = (-buf.ctypes.data % 64) // theta.itemsize
+    kept = []
+    for w in widths:
+        kept.append(buf[at:at + rows * w].reshape(rows, w))
+        at += -(-rows * w // lanes) * lanes
+    return tuple(kept), buf
+
+
+def _give_back(buf):
+    """A finished VJP's cache buffer, for the next rollout of its dtype to reuse."""
+    _spare_caches[buf.dtype] = buf
 
 
 def _touched(shape, dtype):
@@ -142,7 +184,7 @@ def integrate(spec, theta, z0, graph, u=None, n_steps=1, driver="auto", backend=
     if spec.kind == "node":
         intervals = _per_system(spec, intervals)
         spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
-    x, _, zend, _, _, _ = _run(spec, theta, z0, graph, u, n_steps, driver, False, ordering, intervals)
+    x, _, _, zend, _, _, _ = _run(spec, theta, z0, graph, u, n_steps, driver, False, ordering, intervals)
     return x.reshape(shape), zend.reshape(z_shape)
 
 
@@ -177,7 +219,8 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
     if spec.kind == "node":
         intervals = _per_system(spec, intervals)
         spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
-    x, states, _, u, grid, plan = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, intervals)
+    x, states, (kept, buf), _, u, grid, plan = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering,
+                                                   intervals)
     x = x.reshape(shape)
     if not keep_states:
         return x, None
@@ -186,13 +229,15 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
     def vjp(gx, controls=False):
         if np.shape(gx) != shape:
             raise ValueError(f"the cotangent has shape {np.shape(gx)}, the rollout {shape}")
-        gtheta, gx0, gu = _reverse(spec, theta, plan, u, grid, states, gx, controls)
+        gtheta, gx0, gu = _reverse(spec, theta, plan, u, grid, states, kept, gx, controls)
         return (gtheta, gx0.reshape(shape[1:])) + ((gu.reshape(u_shape),) if controls else ())
 
+    if buf is not None:
+        weakref.finalize(vjp, _give_back, buf)
     return x, vjp
 
 
-def _reverse(spec, theta, plan, u, grid, states, gx, controls=False):
+def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False):
     """The kernels' reverse pass for the cotangent ``gx`` of every output: (gtheta, gx0 (M, dx),
     gu (T, M, du) or None) in the user's node order."""
     from . import kernels
@@ -212,7 +257,7 @@ def _reverse(spec, theta, plan, u, grid, states, gx, controls=False):
             kernels.vjp_stagewise(theta, spec.dims, u, g, gt, nsub, hstep, states, gx, gthetas, gx0, gu)
         else:
             kernels.vjp_blocks(theta, spec.dims, u, g, gt, plan.blocks, plan.dense_n, plan.dense_off,
-                               plan.dense_A, plan.dense_AT, nsub, hstep, states, gx, gthetas, gx0, gu)
+                               plan.dense_A, plan.dense_AT, nsub, hstep, states, kept, gx, gthetas, gx0, gu)
     if plan.order is not None:
         gx0[plan.order] = gx0.copy()
     if not controls:

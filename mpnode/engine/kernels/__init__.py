@@ -42,6 +42,7 @@ try:
     from .rk4 import (  # noqa: F401
         STAGE_TILE,
         TILE,
+        caches,
         rollout_blocks,
         rollout_stagewise,
         vjp_blocks,

@@ -25,8 +25,9 @@ nsub[t] = substeps and one step size everywhere; a trajectory that has ended has
 The forward drivers start from a full state z0 (M, dz) and return the final one in
 ``zend`` (a rollout continues exactly where the last one stopped); they keep the state
 after every RK4 step when given a ``states`` array (sum(nsub)+1, M, dz); the reverse
-drivers take the cotangent of every output state, GX (T+1, M, dx), recompute each step's
-stages from the kept state and return the parameter cotangent (one buffer per block or
+drivers take the cotangent of every output state, GX (T+1, M, dx), read each step's stage
+caches where the forward kept them (block drivers, given ``kept`` arrays with rows) or
+recompute them from the kept state, and return the parameter cotangent (one buffer per block or
 tile, reduced by the caller: deterministic, no races), the initial state's and, when the
 caller gives GU (T, M, du) rows, the controls' (each node's rows are its own: no races
 either).  ``dims``: the model's integers (slots in mpnode.engine.dims); ``graph`` =
@@ -226,17 +227,20 @@ def send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C, slot, r0, r1, gtheta, g
 
 
 @njit(**JIT)
-def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff, A, AT, sums, work, gtheta, gu):
+def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff, A, AT, sums, work, C, recompute,
+                      gtheta, gu):
     """Reverse one RK4 step of the closed range lo..hi: returns the cotangent of its start state.
 
     zstart: the state at the step's start; a: the cotangent of the state at its end.  The
-    four stages are recomputed (caches in ``work``), then walked backwards.  u is held over
-    the step, so its cotangent (added into gu unless empty) sums over the four stages.
+    four stages' caches C are the forward's, or, when ``recompute``, recomputed from zstart
+    into C; then the stages are walked backwards.  u is held over the step, so its cotangent
+    (added into gu unless empty) sums over the four stages.
     """
-    z, za, zb, acc, C, gagg, gS, gh0 = work
+    z, za, zb, acc, gagg, gS, gh0 = work
     kind, dx, self_msg = dims[KIND], dims[DX], dims[SELF_MSG]
-    z[:] = zstart
-    substep_range(h, theta, dims, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C)
+    if recompute:
+        z[:] = zstart
+        substep_range(h, theta, dims, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C)
     gz = a.copy()
     gnext = za  # cotangent of the next stage's input (stage buffers are free now)
     gin = zb
@@ -276,16 +280,42 @@ def _block_work(dims, n, like):
     return z, np.empty_like(z), np.empty_like(z), np.empty_like(z), caches(dims, 4, n, like)
 
 
+@njit(**JIT)
+def block_caches(kept, M, lo, hi):
+    """Block lo..hi's part of the kept stage caches: per cache, (steps, 4, n, width).
+
+    ``kept`` holds, per cache of `caches`, a (steps * 4 * M, width) array in which block lo..hi
+    owns the rows steps * 4 * lo up to steps * 4 * hi (no rows: nothing kept, steps = 0)."""
+    steps = kept[0].shape[0] // (4 * M)
+    return (_block_part(kept[0], steps, lo, hi), _block_part(kept[1], steps, lo, hi), _block_part(kept[2], steps, lo, hi),
+            _block_part(kept[3], steps, lo, hi), _block_part(kept[4], steps, lo, hi))
+
+
+@njit(**JIT)
+def _block_part(c, steps, lo, hi):
+    return c[steps * 4 * lo:steps * 4 * hi].reshape(steps, 4, hi - lo, c.shape[1])
+
+
+@njit(**JIT)
+def step_caches(P, k):
+    """The caches of RK4 step k (4 stages) from a block's kept caches P."""
+    return P[0][k], P[1][k], P[2][k], P[3][k], P[4][k]
+
+
 @njit(parallel=True, **JIT)
-def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, dense_A, nsub, hstep, out, states, zend):
-    """Forward rollout from the full state z0: x at every output step into ``out``, the final z into zend."""
+def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, dense_A, nsub, hstep, out, states, zend,
+                   kept):
+    """Forward rollout from the full state z0: x at every output step into ``out``, the final z
+    into zend; every RK4 step's stage caches into ``kept`` when it has rows (`block_caches`)."""
     dx = dims[DX]
     T = out.shape[0] - 1
     keep = states.shape[0] > 0
+    keep_caches = kept[0].shape[0] > 0
     for b in prange(len(block_ptr) - 1):
         lo = block_ptr[b]
         hi = block_ptr[b + 1]
         z, za, zb, acc, C = _block_work(dims, hi - lo, z0)
+        P = block_caches(kept, z0.shape[0], lo, hi)
         A = dense_block(dense_A, dense_n[b], dense_off[b])
         sums = np.empty((hi - lo, sent_width(dims)), z0.dtype)
         z[:] = z0[lo:hi]
@@ -295,7 +325,8 @@ def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, den
         k = 0
         for t in range(T):
             for s in range(nsub[t]):
-                substep_range(hstep[t], theta, dims, z, za, zb, acc, U[t], graph, lo, hi, lo, A, sums, C)
+                Ck = step_caches(P, k) if keep_caches else C
+                substep_range(hstep[t], theta, dims, z, za, zb, acc, U[t], graph, lo, hi, lo, A, sums, Ck)
                 k += 1
                 if keep:
                     states[k, lo:hi] = z
@@ -305,21 +336,24 @@ def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, den
 
 @njit(parallel=True, **JIT)
 def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, dense_A, dense_AT, nsub, hstep, states,
-               GX, gthetas, gx0, GU):
+               kept, GX, gthetas, gx0, GU):
     """Reverse pass: cotangents GX (T+1, M, dx) of the output states -> gthetas[b] (block b's
     parameter cotangent) and gx0 (M, dx); the controls' cotangent added into GU (T, M, du)
-    unless GU has no rows (T, 0, du).  ``states`` from rollout_blocks."""
+    unless GU has no rows (T, 0, du).  ``states`` and ``kept`` from rollout_blocks: without
+    kept caches, each step's stages are recomputed from its state."""
     dx = dims[DX]
     T = GX.shape[0] - 1
     sw = sent_width(dims)
+    recompute = kept[0].shape[0] == 0
     for b in prange(len(block_ptr) - 1):
         lo = block_ptr[b]
         hi = block_ptr[b + 1]
         n = hi - lo
         z, za, zb, acc, C = _block_work(dims, n, GX)
+        P = block_caches(kept, GX.shape[1], lo, hi)
         gS = np.empty((n if dims[KIND] == L2S else 0, sw), GX.dtype)
         gh0 = np.empty((n if dims[KIND] == L2S else 0, dims[HIDDEN]), GX.dtype)
-        work = (z, za, zb, acc, C, np.empty((n, sw), GX.dtype), gS, gh0)
+        work = (z, za, zb, acc, np.empty((n, sw), GX.dtype), gS, gh0)
         A = dense_block(dense_A, dense_n[b], dense_off[b])
         AT = dense_block(dense_AT, dense_n[b], dense_off[b])
         sums = np.empty((n, sw), GX.dtype)
@@ -331,8 +365,9 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
             gz[:, :dx] += GX[t + 1, lo:hi]
             for s in range(nsub[t] - 1, -1, -1):
                 k -= 1
+                Ck = C if recompute else step_caches(P, k)
                 gz = substep_vjp_range(hstep[t], theta, dims, states[k, lo:hi], gz, U[t], graph, tgraph, lo, hi, lo, A,
-                                       AT, sums, work, gtheta, GU[t])
+                                       AT, sums, work, Ck, recompute, gtheta, GU[t])
         gx0[lo:hi] = gz[:, :dx] + GX[0, lo:hi]
 
 
