@@ -1,4 +1,4 @@
-"""Training losses on rollouts, written once in NumPy on top of the engine's VJP.
+"""Training losses on rollouts, written once on top of the engine's VJP.
 
 A loss compares a rollout ``pred`` with the truth ``x``, both (T+1, M, dx) in the
 model's normalised units: summed over the observed entries of steps 1..T (NaN in ``x`` is a
@@ -21,31 +21,20 @@ def huber(pred, x, n_nodes):
 
     With c = clip(e, -1, 1), huber(e) = c (e - c / 2) and its derivative is c.
     """
-    e = _error(pred, x)
-    c = np.clip(e, -1.0, 1.0)
-    value = float(np.sum(c * (e - 0.5 * c), dtype=np.float64)) / n_nodes
-    return value, _cotangent(pred, c, 1.0 / n_nodes)
+    return _value_and_cotangent(pred, x, n_nodes, True)
 
 
 def mse(pred, x, n_nodes):
     """Squared error of pred - x: (value, cotangent like pred)."""
-    e = _error(pred, x)
-    value = float(np.sum(e * e, dtype=np.float64)) / n_nodes
-    return value, _cotangent(pred, e, 2.0 / n_nodes)
+    return _value_and_cotangent(pred, x, n_nodes, False)
 
 
-def _error(pred, x):
-    """pred - x at steps 1..T, 0 where x was not observed (NaN)."""
-    e = pred[1:] - x[1:]
-    return np.where(np.isnan(e), e.dtype.type(0), e)
+def _value_and_cotangent(pred, x, n_nodes, is_huber):
+    from .residuals import residual_pass
 
-
-def _cotangent(pred, de, scale):
-    """scale * de at steps 1..T, 0 at step 0 (the initial state is given, not predicted)."""
     g = np.empty_like(pred)
-    g[0] = 0
-    np.multiply(de, pred.dtype.type(scale), out=g[1:], casting="unsafe")
-    return g
+    total, _ = residual_pass(pred, np.asarray(x, dtype=pred.dtype), is_huber, g, 1.0 / n_nodes)
+    return total / n_nodes, g
 
 
 LOSSES = {"huber": huber, "mse": mse}
@@ -53,9 +42,10 @@ LOSSES = {"huber": huber, "mse": mse}
 
 def value(pred, x, loss="huber", n_nodes=None):
     """The loss alone; inf when a prediction is non-finite (a blown-up validation rollout)."""
-    if not np.all(np.isfinite(pred)):
-        return math.inf
-    return LOSSES[loss](pred.astype(np.float64), x, n_nodes or x.shape[1])[0]
+    from .residuals import residual_pass
+
+    total, finite = residual_pass(pred, x, LOSSES[loss] is huber, pred[:0], 0.0)
+    return total / (n_nodes or x.shape[1]) if finite else math.inf
 
 
 def value_and_grad(spec, theta, x, graph, u=None, loss="huber", n_nodes=None, driver="auto", x0=None,
