@@ -166,35 +166,52 @@ def test_the_reverse_pass_from_kept_stage_caches_is_the_recomputing_one_bit_for_
     """The block driver's reverse pass reads every step's stage caches from the forward when
     they fit in rollout.KEEP_CACHES_BYTES, and recomputes them from the kept states otherwise:
     the same numbers either way (parameters, initial state, controls), for every kind, on
-    dense and CSR blocks, with substeps and with each node's own output times."""
-    from mpnode.engine import rollout
+    dense and CSR blocks, with substeps, and with each node's own output times (output
+    intervals of 6, 1 and 0 RK4 steps)."""
+    from mpnode.engine import kernels, rollout
 
     spec = node_spec(4) if name == "node" else KIND_SPECS.get(name, spec_())
     graph = block_diagonal([Graph.complete(4)] * 5) if name == "node" else mixed_graph(6, big=220)
     T = 4
     theta, x0, u = problem(spec, graph, T, seed=9)
-    iv = spec.dt * np.random.default_rng(10).uniform(0.3, 1.7, (T, graph.n_nodes)) if name == "mpnode-irregular" else None
+    iv = None
+    if name == "mpnode-irregular":
+        iv = spec.dt * np.random.default_rng(10).uniform(0.3, 1.7, (T, graph.n_nodes))
+        iv[1] *= 0.2
+        iv[2] = 0
     gx = np.random.default_rng(11).standard_normal((T + 1, graph.n_nodes, spec.state_dim))
+    real_vjp = kernels.vjp_blocks
 
-    def gradients(budget):
+    def poisoned_vjp(*args):
+        kept = args[13]
+        assert isinstance(kept, tuple) and len(kept) == 5
+        for c in kept:
+            c.fill(np.nan)
+        return real_vjp(*args)
+
+    def gradients(budget, poison=False):
         monkeypatch.setattr(rollout, "KEEP_CACHES_BYTES", budget)
+        monkeypatch.setattr(kernels, "vjp_blocks", poisoned_vjp if poison else real_vjp)
         x, vjp = engine.forward_with_vjp(spec, theta, x0, graph, u, T, driver="blocks", intervals=iv)
         return (x,) + vjp(gx, controls=True)
 
-    monkeypatch.setattr(rollout, "_spare_caches", {})
-    kept = gradients(2**30)
-    assert theta.dtype in rollout._spare_caches  # the caches were kept (and given back with the VJP)
-    recomputed = gradients(0)
+    kept, recomputed = gradients(2**30), gradients(0)
     for a, b in zip(kept, recomputed):
         np.testing.assert_array_equal(a, b)
     assert np.abs(kept[1]).max() > 0 and np.abs(kept[3]).max() > 0
+    assert np.isnan(gradients(2**30, poison=True)[1]).any()  # the reverse pass read the kept caches
+    for a, b in zip(gradients(0, poison=True), recomputed):  # and without them, it recomputed
+        np.testing.assert_array_equal(a, b)
 
 
 def test_kept_stage_caches_are_reused_once_no_vjp_holds_them(monkeypatch):
     """A training step's caches go back for the next step's rollout when its VJP is gone (no
     fresh pages per batch), and a VJP still alive keeps its own."""
+    import gc
+
     from mpnode.engine import rollout
 
+    gc.collect()  # VJPs of earlier tests caught in reference cycles give their buffers back now
     monkeypatch.setattr(rollout, "_spare_caches", {})
     spec, graph = spec_(), mixed_graph(6, big=220)
     theta, x0, u = problem(spec, graph, 3, seed=12)
@@ -205,9 +222,10 @@ def test_kept_stage_caches_are_reused_once_no_vjp_holds_them(monkeypatch):
     want = second(gx)
     del first
     buf = rollout._spare_caches[theta.dtype]
-    _, third = engine.forward_with_vjp(spec, theta, x0, graph, u, 3)
+    _, third = engine.forward_with_vjp(spec, theta, 2 * x0, graph, u, 3)
     assert rollout._spare_caches == {}  # the third took the first's buffer ...
-    for a, b in zip(third(gx), want):  # ... and computes with it what the second computes with its own
+    for a, b in zip(second(gx), want):  # ... not the second's, which still computes what it did
         np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(third(gx)[0], want[0])
     del third
     assert rollout._spare_caches[theta.dtype] is buf

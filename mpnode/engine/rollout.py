@@ -63,8 +63,8 @@ def _edgeless(n):
 
 def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, intervals):
     """The forward rollout from the full state z0: (x (n_steps+1, M, dx) and z at the end in
-    the user's node order, states, the kept stage caches (None for one large graph) and u,
-    the time grid and the plan as the kernels saw them)."""
+    the user's node order, states, (the kept stage caches, their buffer) (None, None for one
+    large graph) and u, the time grid and the plan as the kernels saw them)."""
     from . import kernels
 
     theta = np.ascontiguousarray(theta)
@@ -108,22 +108,25 @@ def _stage_caches(spec, n_rk4_steps, m, theta):
     """(arrays rollout_blocks fills with every RK4 step's stage caches, rows per
     `kernels.rk4.block_caches`; the buffer behind them or None).  Arrays without rows when
     there is nothing to keep: no VJP asked, or more than KEEP_CACHES_BYTES."""
+    none = tuple(np.empty((0, 0), theta.dtype) for _ in range(5))  # the kernels' five caches
+    if n_rk4_steps <= 0:
+        return none, None
     from . import kernels
 
     rows = 4 * n_rk4_steps * m
     widths = [c.shape[2] for c in kernels.caches(spec.dims, 1, 0, theta)]
-    size = rows * sum(widths)
-    if n_rk4_steps <= 0 or size * theta.itemsize > KEEP_CACHES_BYTES:
-        return tuple(np.empty((0, w), theta.dtype) for w in widths), None
     lanes = 64 // theta.itemsize  # every array starts on a 64-byte boundary, as the kernels' own
+    padded = [-(-rows * w // lanes) * lanes for w in widths]
+    if sum(padded) * theta.itemsize > KEEP_CACHES_BYTES:
+        return none, None
     buf = _spare_caches.pop(theta.dtype, None)
-    if buf is None or buf.size < size + len(widths) * lanes:
-        buf = np.empty(size + (len(widths) + 1) * lanes, theta.dtype)
+    if buf is None or buf.size < sum(padded) + lanes:
+        buf = np.empty(sum(padded) + lanes, theta.dtype)
     at = (-buf.ctypes.data % 64) // theta.itemsize
     kept = []
-    for w in widths:
+    for w, size in zip(widths, padded):
         kept.append(buf[at:at + rows * w].reshape(rows, w))
-        at += -(-rows * w // lanes) * lanes
+        at += size
     return tuple(kept), buf
 
 

@@ -44,7 +44,10 @@ def value(pred, x, loss="huber", n_nodes=None):
     """The loss alone; inf when a prediction is non-finite (a blown-up validation rollout)."""
     from .residuals import residual_pass
 
-    total, finite = residual_pass(pred, x, LOSSES[loss] is huber, pred[:0], 0.0)
+    if loss not in LOSSES:
+        raise KeyError(f"unknown loss {loss!r}")
+    value_only = pred[:0]  # a cotangent without rows: residual_pass writes none
+    total, finite = residual_pass(pred, x, loss == "huber", value_only, 0.0)
     return total / (n_nodes or x.shape[1]) if finite else math.inf
 
 

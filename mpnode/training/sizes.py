@@ -5,13 +5,14 @@ Three kinds of arrays grow with what a user asks for: those the size of the para
 checkpoint's copies and the kernels' per-block gradients: about PARAM_COPIES float64
 copies), those the size of the training data (the normalised training and validation
 copies, the noise drawn once, the curriculum's windows) and those the size of one batch
-(one state per RK4 step for the adjoint, the rollout and its cotangent).  The largest of
-the three names the option to change.
+(one state per RK4 step for the adjoint, the rollout and its cotangent, and every stage's
+inputs and activations up to the engine's KEEP_CACHES_BYTES).  The largest of the three
+names the option to change.
 """
 import numpy as np
 
 from mpnode.base.memory import check_memory
-from mpnode.engine import layouts
+from mpnode.engine import layouts, rollout
 
 #: float64 copies of the parameter vector a run keeps (see the module docstring)
 PARAM_COPIES = 16
@@ -32,7 +33,10 @@ def training_bytes(spec, data, config, dtype):
     horizon = max(t.horizon for t in data.datasets)
     nodes = max(t.n_nodes for t in data.datasets)
     width = spec.state_dim + spec.message_dim
-    batch = (horizon * spec.substeps + 1) * config.batch_size * nodes * width * itemsize * BATCH_COPIES
+    rk4_steps = horizon * spec.substeps
+    batch = (rk4_steps + 1) * config.batch_size * nodes * width * itemsize * BATCH_COPIES
+    stages = 4 * rk4_steps * config.batch_size * nodes * (width + spec.control_dim + 4 * spec.hidden) * itemsize
+    batch += min(stages, rollout.KEEP_CACHES_BYTES)
     return {"parameters": layouts.n_params(spec) * 8 * PARAM_COPIES, "data": entries * DATA_BYTES_PER_ENTRY,
             "batch": batch}
 

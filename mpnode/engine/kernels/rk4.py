@@ -274,10 +274,12 @@ def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff,
 # (N, N) matrix at dense_A[dense_off[b]:] (dense_n[b] = 0: use the CSR rows).
 # ---------------------------------------------------------------------------
 @njit(**JIT)
-def _block_work(dims, n, like):
+def _block_work(dims, n, like, slots):
+    """A block's state buffers and ``slots`` stage caches (4 where the stages are computed
+    here, 0 where they are the kept ones)."""
     dz = state_width(dims)
     z = np.zeros((n, dz), like.dtype)
-    return z, np.empty_like(z), np.empty_like(z), np.empty_like(z), caches(dims, 4, n, like)
+    return z, np.empty_like(z), np.empty_like(z), np.empty_like(z), caches(dims, slots, n, like)
 
 
 @njit(**JIT)
@@ -287,8 +289,9 @@ def block_caches(kept, M, lo, hi):
     ``kept`` holds, per cache of `caches`, a (steps * 4 * M, width) array in which block lo..hi
     owns the rows steps * 4 * lo up to steps * 4 * hi (no rows: nothing kept, steps = 0)."""
     steps = kept[0].shape[0] // (4 * M)
-    return (_block_part(kept[0], steps, lo, hi), _block_part(kept[1], steps, lo, hi), _block_part(kept[2], steps, lo, hi),
-            _block_part(kept[3], steps, lo, hi), _block_part(kept[4], steps, lo, hi))
+    return (_block_part(kept[0], steps, lo, hi), _block_part(kept[1], steps, lo, hi),
+            _block_part(kept[2], steps, lo, hi), _block_part(kept[3], steps, lo, hi),
+            _block_part(kept[4], steps, lo, hi))
 
 
 @njit(**JIT)
@@ -314,7 +317,7 @@ def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, den
     for b in prange(len(block_ptr) - 1):
         lo = block_ptr[b]
         hi = block_ptr[b + 1]
-        z, za, zb, acc, C = _block_work(dims, hi - lo, z0)
+        z, za, zb, acc, C = _block_work(dims, hi - lo, z0, 0 if keep_caches else 4)
         P = block_caches(kept, z0.shape[0], lo, hi)
         A = dense_block(dense_A, dense_n[b], dense_off[b])
         sums = np.empty((hi - lo, sent_width(dims)), z0.dtype)
@@ -349,7 +352,7 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
         lo = block_ptr[b]
         hi = block_ptr[b + 1]
         n = hi - lo
-        z, za, zb, acc, C = _block_work(dims, n, GX)
+        z, za, zb, acc, C = _block_work(dims, n, GX, 4 if recompute else 0)
         P = block_caches(kept, GX.shape[1], lo, hi)
         gS = np.empty((n if dims[KIND] == L2S else 0, sw), GX.dtype)
         gh0 = np.empty((n if dims[KIND] == L2S else 0, dims[HIDDEN]), GX.dtype)
