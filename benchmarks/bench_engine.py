@@ -21,6 +21,7 @@ the rollout without neighbour sums (zero_messages: same dense work, no gather), 
 dense layers alone, and one thread.
 
     python benchmarks/bench_engine.py [--json] [--cases S1,S2] [--kinds mpnode,l2s] [--dtype float32,float64]
+                                      [--batch B]
     python benchmarks/bench_engine.py --cases S5,R200k,S6,L6,L6-none --kinds mpnode [--profile]
 """
 import argparse
@@ -158,11 +159,11 @@ def reset_peak():
         return False
 
 
-def run_case(case, kind, dtype, gflops, profile=False):
+def run_case(case, kind, dtype, gflops, profile=False, batch=None):
     c = CASES[case]
     big = c.get("big", False)
     spec = spec_for(case, kind)
-    graph = block_diagonal([c["graph"]()] * c["B"])
+    graph = block_diagonal([c["graph"]()] * (batch or c["B"]))
     m = graph.n_nodes
     theta = glorot_init(spec, seed=0, dtype=dtype)
     x = np.random.default_rng(1).standard_normal((T + 1, m, c["dx"])).astype(dtype)
@@ -288,6 +289,7 @@ def main():
     ap.add_argument("--dtype", default="float32", help="float32, float64 or both, comma-separated")
     ap.add_argument("--profile", action="store_true", help="split the large cases' rollout time (see above)")
     ap.add_argument("--json", action="store_true", help="one JSON object per case")
+    ap.add_argument("--batch", type=int, help="graphs per batch instead of each case's B (S1-S4)")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: one case, JSON, in this process
     args = ap.parse_args()
     if args.one:
@@ -306,7 +308,7 @@ def main():
                 if CASES[case].get("big"):
                     r = run_isolated(case, kind, dtype.name, args.profile)
                 else:
-                    r = run_case(case, kind, dtype, gflops, args.profile and case == "S5")
+                    r = run_case(case, kind, dtype, gflops, args.profile and case == "S5", args.batch)
                 if args.json:
                     print(json.dumps(r), flush=True)
                 else:
