@@ -205,27 +205,25 @@ def test_the_reverse_pass_from_kept_stage_caches_is_the_recomputing_one_bit_for_
 
 
 def test_kept_stage_caches_are_reused_once_no_vjp_holds_them(monkeypatch):
-    """A training step's caches go back for the next step's rollout when its VJP is gone (no
+    """A training step's caches are reused by the next step's rollout once its VJP is gone (no
     fresh pages per batch), and a VJP still alive keeps its own."""
-    import gc
-
     from mpnode.engine import rollout
 
-    gc.collect()  # VJPs of earlier tests caught in reference cycles give their buffers back now
-    monkeypatch.setattr(rollout, "_spare_caches", {})
+    monkeypatch.setattr(rollout, "_caches_buffers", {})
     spec, graph = spec_(), mixed_graph(6, big=220)
     theta, x0, u = problem(spec, graph, 3, seed=12)
-    _, first = engine.forward_with_vjp(spec, theta, x0, graph, u, 3)
-    _, second = engine.forward_with_vjp(spec, theta, x0, graph, u, 3)
-    assert rollout._spare_caches == {}  # both VJPs alive: two buffers, none spare
     gx = np.ones((4, graph.n_nodes, spec.state_dim))
-    want = second(gx)
-    del first
-    buf = rollout._spare_caches[theta.dtype]
-    _, third = engine.forward_with_vjp(spec, theta, 2 * x0, graph, u, 3)
-    assert rollout._spare_caches == {}  # the third took the first's buffer ...
-    for a, b in zip(second(gx), want):  # ... not the second's, which still computes what it did
+    _, first = engine.forward_with_vjp(spec, theta, x0, graph, u, 3)
+    taken = rollout._caches_buffers[theta.dtype]
+    want = first(gx)
+    _, second = engine.forward_with_vjp(spec, theta, 2 * x0, graph, u, 3)
+    assert rollout._caches_buffers[theta.dtype] is not taken  # the first VJP is alive: a buffer of its own ...
+    for a, b in zip(first(gx), want):  # ... which the second rollout left as it was
         np.testing.assert_array_equal(a, b)
-    assert not np.array_equal(third(gx)[0], want[0])
-    del third
-    assert rollout._spare_caches[theta.dtype] is buf
+    assert not np.array_equal(second(gx)[0], want[0])
+    del first, second
+    taken = rollout._caches_buffers[theta.dtype]
+    _, third = engine.forward_with_vjp(spec, theta, x0, graph, u, 3)
+    assert rollout._caches_buffers[theta.dtype] is taken  # no VJP holds it any more: reused
+    for a, b in zip(third(gx), want):
+        np.testing.assert_array_equal(a, b)

@@ -16,7 +16,7 @@ Arrays here are time-major and flat over nodes: x (T+1, M, dx), u (T, M, du).
 `mpnode.model` turns (B, T+1, N, dx) batches into this layout.
 """
 import functools
-import weakref
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -63,8 +63,8 @@ def _edgeless(n):
 
 def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, intervals):
     """The forward rollout from the full state z0: (x (n_steps+1, M, dx) and z at the end in
-    the user's node order, states, (the kept stage caches, their buffer) (None, None for one
-    large graph) and u, the time grid and the plan as the kernels saw them)."""
+    the user's node order, states, the kept stage caches (None for one large graph) and u,
+    the time grid and the plan as the kernels saw them)."""
     from . import kernels
 
     theta = np.ascontiguousarray(theta)
@@ -83,15 +83,15 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
     states = _touched((n_states, m if keep_states else 0, spec.state_width), theta.dtype)
     zend = np.empty_like(z0)
     g = (plan.csr.indptr, plan.csr.indices, plan.weight)
-    kept = buf = None
+    kept = None
     with single_threaded_blas():
         if plan.blocks is None:
             kernels.rollout_stagewise(theta, spec.dims, z0, u, g, nsub, hstep, out, states, zend)
         else:
-            kept, buf = _stage_caches(spec, n_states - 1, m, theta)
+            kept = _stage_caches(spec, n_states - 1, m, theta)
             kernels.rollout_blocks(theta, spec.dims, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off,
                                    plan.dense_A, nsub, hstep, out, states, zend, kept)
-    return plan.to_user_order(out), states, (kept, buf), plan.to_user_order(zend[None])[0], u, (nsub, hstep), plan
+    return plan.to_user_order(out), states, kept, plan.to_user_order(zend[None])[0], u, (nsub, hstep), plan
 
 
 #: the stage caches of a rollout's every RK4 step are kept for its VJP up to this size: the
@@ -99,18 +99,20 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
 #: (docs/evidence/speed.md#kept-stage-caches); larger rollouts recompute them, so that memory
 #: stays one state per step.
 KEEP_CACHES_BYTES = 128 * 2**20
-#: dtype -> a buffer for kept stage caches that no VJP holds any more: a training step reuses the
-#: last one's instead of having fresh pages mapped (and faulted in) for every batch
-_spare_caches = {}
+#: dtype -> the last buffer of kept stage caches: the next rollout reuses it once no VJP's caches
+#: view it (a training step's, after the step), instead of having fresh pages mapped and faulted
+#: in for every batch.  Checked by reference count when it is taken, not by a callback when a
+#: VJP dies: a Ctrl-C landing in such a callback would be swallowed.
+_caches_buffers = {}
 
 
 def _stage_caches(spec, n_rk4_steps, m, theta):
-    """(arrays rollout_blocks fills with every RK4 step's stage caches, rows per
-    `kernels.rk4.block_caches`; the buffer behind them or None).  Arrays without rows when
-    there is nothing to keep: no VJP asked, or more than KEEP_CACHES_BYTES."""
+    """The arrays rollout_blocks fills with every RK4 step's stage caches (rows per
+    `kernels.rk4.block_caches`), views of one buffer; arrays without rows when there is nothing
+    to keep: no VJP asked, or more than KEEP_CACHES_BYTES."""
     none = tuple(np.empty((0, 0), theta.dtype) for _ in range(5))  # the kernels' five caches
     if n_rk4_steps <= 0:
-        return none, None
+        return none
     from . import kernels
 
     rows = 4 * n_rk4_steps * m
@@ -118,21 +120,17 @@ def _stage_caches(spec, n_rk4_steps, m, theta):
     lanes = 64 // theta.itemsize  # every array starts on a 64-byte boundary, as the kernels' own
     padded = [-(-rows * w // lanes) * lanes for w in widths]
     if sum(padded) * theta.itemsize > KEEP_CACHES_BYTES:
-        return none, None
-    buf = _spare_caches.pop(theta.dtype, None)
-    if buf is None or buf.size < sum(padded) + lanes:
+        return none
+    buf = _caches_buffers.pop(theta.dtype, None)  # popped: no other thread's rollout takes it meanwhile
+    if buf is None or sys.getrefcount(buf) > 2 or buf.size < sum(padded) + lanes:  # 2: `buf` and the call's
         buf = np.empty(sum(padded) + lanes, theta.dtype)
     at = (-buf.ctypes.data % 64) // theta.itemsize
     kept = []
     for w, size in zip(widths, padded):
         kept.append(buf[at:at + rows * w].reshape(rows, w))
         at += size
-    return tuple(kept), buf
-
-
-def _give_back(buf):
-    """A finished VJP's cache buffer, for the next rollout of its dtype to reuse."""
-    _spare_caches[buf.dtype] = buf
+    _caches_buffers[theta.dtype] = buf
+    return tuple(kept)
 
 
 def _touched(shape, dtype):
@@ -222,8 +220,8 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
     if spec.kind == "node":
         intervals = _per_system(spec, intervals)
         spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
-    x, states, (kept, buf), _, u, grid, plan = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering,
-                                                   intervals)
+    x, states, kept, _, u, grid, plan = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering,
+                                             intervals)
     x = x.reshape(shape)
     if not keep_states:
         return x, None
@@ -235,8 +233,6 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
         gtheta, gx0, gu = _reverse(spec, theta, plan, u, grid, states, kept, gx, controls)
         return (gtheta, gx0.reshape(shape[1:])) + ((gu.reshape(u_shape),) if controls else ())
 
-    if buf is not None:
-        weakref.finalize(vjp, _give_back, buf)
     return x, vjp
 
 
