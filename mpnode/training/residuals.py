@@ -9,8 +9,8 @@ def residual_pass(pred, x, is_huber, g, scale):
     """One pass over pred - x, in float64, at steps 1..T (e = 0 where it is NaN: x not observed):
     returns (the sum of huber(e) or e^2; whether pred is finite everywhere) and, when ``g`` has
     rows, writes the cotangent scale * dloss/de into g (0 at step 0: the initial state is
-    given).  Loss and cotangent in one pass: in NumPy they took eight, as much time as an
-    epoch's validation rollouts (docs/evidence/speed.md#kept-stage-caches)."""
+    given).  Loss and cotangent in one pass, where NumPy took eight and a float64 copy
+    (what that cost: docs/evidence/speed.md#kept-stage-caches)."""
     total = 0.0
     finite = True
     grad = g.shape[0] > 0
