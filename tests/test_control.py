@@ -63,6 +63,29 @@ def test_optimise_controls_keeps_to_its_bounds():
     assert info["iterations"] >= 1 and info["evaluations"] >= 1
 
 
+
+def test_the_optimiser_runs_blas_on_one_thread():
+    """L-BFGS-B's small vector products on a BLAS thread pool kept a second core spinning: twice
+    the CPU a control step needs.  Pinned while the optimiser runs, restored after it."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas_threads():
+        return {lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"}
+
+    seen = []
+
+    def predict(U):
+        seen.append(blas_threads())
+        X = np.concatenate([np.zeros((1, 1, 1, 2)), np.cumsum(U, axis=1)], axis=1)
+        return X, lambda dX: np.cumsum(dX[:, :0:-1], axis=1)[:, ::-1]
+
+    cost = tracking_cost(np.array([1.0, -1.0]), [1.0, 1.0], [0.0, 0.0])
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert blas_threads() == {2}
+        optimise_controls(predict, cost, np.zeros((1, H, 1, 2)), iterations=5)
+        assert blas_threads() == {2}
+    assert seen and all(s == {1} for s in seen)
+
 @pytest.fixture
 def one_thread():
     """numba on one thread while the test runs: a control loop of a dozen nodes is too small to

@@ -15,6 +15,7 @@ import numpy as np
 from mpnode import engine
 from mpnode.base.arguments import check_int
 from mpnode.base.errors import InputError
+from mpnode.engine.backend import single_threaded_blas
 from mpnode.model.model import batch_graph, to_time_major
 
 
@@ -57,8 +58,9 @@ def optimise_controls(predict, cost, U0, bounds=None, iterations=30):
     if bounds is not None:
         low, high = (np.broadcast_to(np.asarray(b, dtype=np.float64), U0.shape).ravel() for b in bounds)
         box = list(zip(low, high))
-    res = minimize(value_and_grad, U0.ravel(), jac=True, method="L-BFGS-B", bounds=box,
-                   options={"maxiter": iterations})
+    with single_threaded_blas():  # its vectors are small: a BLAS thread pool only spins a second core
+        res = minimize(value_and_grad, U0.ravel(), jac=True, method="L-BFGS-B", bounds=box,
+                       options={"maxiter": iterations})
     info = dict(cost=float(res.fun), iterations=int(res.nit), evaluations=int(res.nfev),
                 seconds=time.perf_counter() - start)
     return res.x.reshape(U0.shape), info
