@@ -39,7 +39,7 @@ def segment(rng, data, a, physics, b, k0):
     hold = np.repeat(data.u[b, k0].mean(axis=1, keepdims=True), quad.CONTROL_DIM, axis=1)
     for s in range(a.steps):
         t = (k0 + s) * dt
-        if a.open_loop:  # the start's collective thrusts without torques, held, plus fresh offsets every step
+        if a.open_loop or s < a.open_steps:  # the start's collective thrusts without torques, held, plus fresh offsets
             F = np.clip(hold + quad.excitation(rng, n, a.collective, a.torque / a.collective)[0],
                         0.0, physics.F_max)
         else:
@@ -69,6 +69,9 @@ def main():
     ap.add_argument("--open-loop", action="store_true",
                     help="no controller: the start's collective thrusts held without torques, a fresh collective offset "
                          "and torque pattern every step (thrusts no state decides, not even through the controller)")
+    ap.add_argument("--open-steps", type=int, default=0,
+                    help="the first K steps open loop as --open-loop has them, the rest under the controller: what the "
+                         "first steps' thrusts do over the steps after them, as a plan's first thrusts in MPC")
     ap.add_argument("--max-tilt", type=float, default=50.0, help="re-draw a segment tilting beyond this (deg)")
     ap.add_argument("--draws", type=int, default=1, help="segments (thrust draws) per drawn start state")
     ap.add_argument("--seed", type=int, default=1)
@@ -89,6 +92,7 @@ def main():
                         attrs={**quad.PARAMS, "scene": "quad3", "seed": a.seed, "redrawn": redrawn,
                                "segment_torque": a.torque, "segment_collective": a.collective,
                                "segment_draws": a.draws,
+                               "segment_open_steps": a.steps if a.open_loop else a.open_steps,
                                "segment_source": a.scene_file,
                                "description": "quad3 segments with torque offsets "
                                               "(benchmarks/studies/mpc/torque_segments.py)"},
