@@ -3,13 +3,16 @@ thrusts (`Simulator.jacobians`: exact, of the model) against the true one (the t
 RK4 at dt / 10, one-sided differences), at states of a quad3 file, per block of the state.
 
 The model steps from the trajectory's start under the file's thrusts up to step t (so its
-messages are those it would have there), then takes the file's true state at t; printed: the
+messages are those it would have there; with --messages zero they are set to 0, as
+`quadrotor_mpc.py --messages zero` has them at the first step of every plan), then takes the
+file's true state at t; printed: the
 relative error ||Ju_model - Ju_true|| / ||Ju_true|| of each block (positions, quaternions,
 velocities, body rates) at each of the states, with respect to all thrusts and, apart, to each
 quadrotor's collective thrust (its four rotors together) and to its three torques (the rotors'
 differences, the mixer's other rows).
 
-    python benchmarks/studies/mpc/control_jacobians.py MODEL.h5 QUAD3.h5 [--states 3,20 10,5 50,35]
+    python benchmarks/studies/mpc/control_jacobians.py MODEL.h5 QUAD3.h5 [--states 3,20 10,5 50,35] \
+        [--messages carry|zero]
 """
 import argparse
 
@@ -46,6 +49,8 @@ def main():
     ap.add_argument("model")
     ap.add_argument("data")
     ap.add_argument("--states", nargs="+", default=["3,20", "10,5", "50,35"], help="trajectory,step pairs")
+    ap.add_argument("--messages", default="carry", choices=("carry", "zero"),
+                    help="the model's messages at the state: those of its run from the start, or 0")
     a = ap.parse_args()
     model, data = Model.load(a.model).copy(np.float64), read_trajectories(a.data)
     errors = {(name, part): [] for name in BLOCKS for part in ("all", "collective", "torques")}
@@ -58,6 +63,8 @@ def main():
         for k in range(t):
             sim.step(data.u[b, k][None])
         sim._z[:, :13] = model.normalize_x(data.x[b, t]).reshape(-1, 13)  # the true state, the model's messages
+        if a.messages == "zero":
+            sim._z[:, 13:] = 0
         ju = sim.jacobians(data.u[b, t][None])[1][0]
         want = true_ju(data.x[b, t], data.aux["load"][b, t], data.u[b, t])
         for name, dims in BLOCKS.items():

@@ -8,7 +8,9 @@ large: the attitude loop is weak at dt = 0.1 s, and such torques over a whole fl
 quadrotor far beyond the scene's tilts (docs/evidence/control.md).  A segment that tilts a quadrotor beyond --max-tilt degrees (or whose
 solver fails) is re-drawn from its own generator.
 
-Segment j draws everything from SeedSequence(--seed, spawn_key=(j,)).  Train on it beside the
+With --draws K, K segments start from each drawn state, each with its own thrusts: only the
+thrusts explain their differences (a re-drawn segment keeps its start).  The group of segments
+j*K .. j*K+K-1 draws everything from SeedSequence(--seed, spawn_key=(j,)) (K = 1: segment j).  Train on it beside the
 scene's file, so that the model still predicts the scene's flights:
 
     python benchmarks/studies/mpc/torque_segments.py quad3.h5 OUT.h5 [-B 4000] [--steps 10] \\
@@ -25,10 +27,10 @@ from mpnode.base.errors import NumericalError
 from mpnode.data import Trajectories
 
 
-def segment(rng, data, a, physics):
-    """One segment: dict x (T+1, n, 13), u (T, n, 4), load (T+1, 6), or None when it tipped over."""
+def segment(rng, data, a, physics, b, k0):
+    """One segment from step k0 of trajectory b: dict x (T+1, n, 13), u (T, n, 4), load (T+1, 6),
+    or None when it tipped over."""
     n, dt = data.n_nodes, data.dt
-    b, k0 = rng.integers(data.n_trajectories), rng.integers(data.horizon - 1)
     aux = data.aux
     ref = quad.Reference(n, aux["load_start"][b], aux["load_goal"][b], physics, quad.CONTROL)
     control = quad.Controller(n, ref, physics, quad.CONTROL, dt, aux["gain_scale"][b])
@@ -37,7 +39,7 @@ def segment(rng, data, a, physics):
     hold = np.repeat(data.u[b, k0].mean(axis=1, keepdims=True), quad.CONTROL_DIM, axis=1)
     for s in range(a.steps):
         t = (k0 + s) * dt
-        if a.open_loop:  # the start's collective thrusts without torques, held, plus fresh offsets every step
+        if a.open_loop or s < a.open_steps:  # the start's collective thrusts without torques, held, plus fresh offsets
             F = np.clip(hold + quad.excitation(rng, n, a.collective, a.torque / a.collective)[0],
                         0.0, physics.F_max)
         else:
@@ -67,20 +69,30 @@ def main():
     ap.add_argument("--open-loop", action="store_true",
                     help="no controller: the start's collective thrusts held without torques, a fresh collective offset "
                          "and torque pattern every step (thrusts no state decides, not even through the controller)")
+    ap.add_argument("--open-steps", type=int, default=0,
+                    help="the first K steps open loop as --open-loop has them, the rest under the controller: what the "
+                         "first steps' thrusts do over the steps after them, as a plan's first thrusts in MPC")
     ap.add_argument("--max-tilt", type=float, default=50.0, help="re-draw a segment tilting beyond this (deg)")
+    ap.add_argument("--draws", type=int, default=1, help="segments (thrust draws) per drawn start state")
     ap.add_argument("--seed", type=int, default=1)
     a = ap.parse_args()
     data, physics = read_trajectories(a.scene_file), quad.Physics()
     runs, redrawn = [], 0
-    for j in range(a.segments):
+    for j in range(-(-a.segments // a.draws)):
         rng = np.random.default_rng(np.random.SeedSequence(a.seed, spawn_key=(j,)))
-        while (r := segment(rng, data, a, physics)) is None:
-            redrawn += 1
-        runs.append(r)
+        b, k0 = rng.integers(data.n_trajectories), rng.integers(data.horizon - 1)
+        for _ in range(min(a.draws, a.segments - j * a.draws)):
+            while (r := segment(rng, data, a, physics, b, k0)) is None:
+                redrawn += 1
+                if a.draws == 1:  # a lone segment is re-drawn whole, start included
+                    b, k0 = rng.integers(data.n_trajectories), rng.integers(data.horizon - 1)
+            runs.append(r)
     traj = Trajectories(x=np.stack([r["x"] for r in runs]), u=np.stack([r["u"] for r in runs]),
                         graphs=data.graphs[:1], dt=data.dt, system=quad.SYSTEM,
                         attrs={**quad.PARAMS, "scene": "quad3", "seed": a.seed, "redrawn": redrawn,
                                "segment_torque": a.torque, "segment_collective": a.collective,
+                               "segment_draws": a.draws,
+                               "segment_open_steps": a.steps if a.open_loop else a.open_steps,
                                "segment_source": a.scene_file,
                                "description": "quad3 segments with torque offsets "
                                               "(benchmarks/studies/mpc/torque_segments.py)"},
