@@ -26,6 +26,9 @@ from mpnode import read_trajectories, write_trajectories
 from mpnode.base.errors import NumericalError
 from mpnode.data import Trajectories
 
+#: thrust draws from one start state (--draws > 1) before giving up on it
+MAX_TRIES = 1000
+
 
 def segment(rng, data, a, physics, b, k0):
     """One segment from step k0 of trajectory b: dict x (T+1, n, 13), u (T, n, 4), load (T+1, 6),
@@ -82,10 +85,14 @@ def main():
         rng = np.random.default_rng(np.random.SeedSequence(a.seed, spawn_key=(j,)))
         b, k0 = rng.integers(data.n_trajectories), rng.integers(data.horizon - 1)
         for _ in range(min(a.draws, a.segments - j * a.draws)):
+            tries = 0
             while (r := segment(rng, data, a, physics, b, k0)) is None:
-                redrawn += 1
+                redrawn, tries = redrawn + 1, tries + 1
                 if a.draws == 1:  # a lone segment is re-drawn whole, start included
                     b, k0 = rng.integers(data.n_trajectories), rng.integers(data.horizon - 1)
+                elif tries == MAX_TRIES:
+                    raise SystemExit(f"no segment of {a.steps} steps from trajectory {b}, step {k0} stays within "
+                                     f"{a.max_tilt} degrees in {MAX_TRIES} draws: lower --torque or --steps, or raise --max-tilt")
             runs.append(r)
     traj = Trajectories(x=np.stack([r["x"] for r in runs]), u=np.stack([r["u"] for r in runs]),
                         graphs=data.graphs[:1], dt=data.dt, system=quad.SYSTEM,
