@@ -21,6 +21,7 @@ import numpy as np
 from data_gen import quadrotor as quad
 from mpnode import Model, Simulator, read_trajectories
 from mpnode.base.graph import Graph
+from true_equations import rk4_step
 
 BLOCKS = {"positions": [0, 1, 2], "quaternions": [3, 4, 5, 6], "velocities": [7, 8, 9], "body rates": [10, 11, 12]}
 #: rotor thrust changes (columns) that move one quadrotor's collective thrust, roll, pitch and yaw torque alone
@@ -32,14 +33,7 @@ def true_ju(x, load, F, eps=1e-6, substeps=10, dt=0.1):
     p, n = quad.Physics(), F.size
     Fs = np.repeat(F[..., None], n + 1, axis=-1)
     Fs.reshape(n, n + 1)[:, 1:] += eps * np.eye(n)
-    Y = np.repeat(quad.pack(x, load)[:, None], n + 1, axis=1)
-    h = dt / substeps
-    for _ in range(substeps):
-        k1 = p.rhs(0, Y, Fs)
-        k2 = p.rhs(0, Y + h / 2 * k1, Fs)
-        k3 = p.rhs(0, Y + h / 2 * k2, Fs)
-        k4 = p.rhs(0, Y + h * k3, Fs)
-        Y = Y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    Y = rk4_step(p, np.repeat(quad.pack(x, load)[:, None], n + 1, axis=1), Fs, dt, substeps)
     quads = Y[:13 * 3]
     return (quads[:, 1:] - quads[:, :1]) / eps
 

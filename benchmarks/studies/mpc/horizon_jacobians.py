@@ -18,6 +18,7 @@ import control_jacobians as cj
 from data_gen import quadrotor as quad
 from mpnode import Model, Simulator, read_trajectories
 from mpnode.base.graph import Graph
+from true_equations import rk4_step
 
 N = 3
 BLOCKS = {"pos": [0, 1, 2], "vel": [7, 8, 9]}
@@ -34,18 +35,14 @@ def perturbations(eps):
 
 def true_states(x, load, U, dF, substeps=10, dt=0.1):
     """(H, 1 + columns, N, 13): the true equations by RK4 at dt / substeps, dF added to U[0]."""
-    p, h, ncol = quad.Physics(), dt / substeps, dF.shape[0] + 1
+    p, ncol = quad.Physics(), dF.shape[0] + 1
     Y = np.repeat(quad.pack(x, load)[:, None], ncol, axis=1)
     out = []
     for k in range(U.shape[0]):
         Fs = np.repeat(U[k][..., None], ncol, axis=-1)
         if k == 0:
             Fs[..., 1:] += np.moveaxis(dF, 0, -1)
-        for _ in range(substeps):
-            k1 = p.rhs(0, Y, Fs)
-            k2 = p.rhs(0, Y + h / 2 * k1, Fs)
-            k3 = p.rhs(0, Y + h / 2 * k2, Fs)
-            Y = Y + h / 6 * (k1 + 2 * k2 + 2 * k3 + p.rhs(0, Y + h * k3, Fs))
+        Y = rk4_step(p, Y, Fs, dt, substeps)
         out.append(Y[:13 * N].T.reshape(ncol, N, 13).copy())
     return np.stack(out)
 

@@ -35,6 +35,7 @@ from data_gen import quadrotor as quad
 from mpnode import Model
 from mpnode.base.graph import Graph
 from mpnode.control import ShootingMPC, optimise_controls, tracking_cost
+from true_equations import rk4_step
 
 N, DT, STEPS = 3, 0.1, 50
 #: cost weights per state dimension: position, quaternion, velocity, body rates; per thrust
@@ -84,16 +85,10 @@ class TruePredictor:
 
     def rollout(self, y, F):
         """States (H+1, 13 N + 6, k) from y under thrusts F (H, N, 4, k), held per step."""
-        h = DT / self.substeps
         Y = np.repeat(y[:, None], F.shape[-1], axis=1)
         out = [Y]
         for t in range(F.shape[0]):
-            for _ in range(self.substeps):
-                k1 = self.p.rhs(0, Y, F[t])
-                k2 = self.p.rhs(0, Y + h / 2 * k1, F[t])
-                k3 = self.p.rhs(0, Y + h / 2 * k2, F[t])
-                k4 = self.p.rhs(0, Y + h * k3, F[t])
-                Y = Y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            Y = rk4_step(self.p, Y, F[t], DT, self.substeps)
             out.append(Y)
         return np.stack(out)
 
