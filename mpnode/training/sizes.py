@@ -35,6 +35,7 @@ def training_bytes(spec, data, config, dtype):
     width = spec.state_dim + spec.message_dim
     rk4_steps = horizon * spec.substeps
     batch = (rk4_steps + 1) * config.batch_size * nodes * width * itemsize * BATCH_COPIES
+    # the stages' inputs and four hidden-wide activations: L2S's widths, above MP-NODE's two
     stages = 4 * rk4_steps * config.batch_size * nodes * (width + spec.control_dim + 4 * spec.hidden) * itemsize
     batch += min(stages, rollout.KEEP_CACHES_BYTES)
     return {"parameters": layouts.n_params(spec) * 8 * PARAM_COPIES, "data": entries * DATA_BYTES_PER_ENTRY,
