@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from engine_helpers import make_graph, random_theta, spec_
 
-from mpnode import InputError, Model, Simulator
+from mpnode import Ensemble, InputError, Model, Simulator
 from mpnode.control import ShootingMPC, optimise_controls, tracking_cost
 
 N, DX, DU, B, H = 6, 2, 2, 2, 4
@@ -34,7 +34,7 @@ def test_the_cost_gradient_matches_finite_differences(name):
     mpc = ShootingMPC(make_model(name), graph(), H)
     mpc.reset(rng.standard_normal((B, N, DX)), 0.0)
     cost = tracking_cost(rng.standard_normal((B, H + 1, N, DX)), [1.0, 0.5], [0.1, 0.2])
-    z0 = mpc._z.copy()
+    z0 = [z.copy() for z in mpc._z]
     U = rng.standard_normal((B, H, N, DU))
 
     def total(U):
@@ -49,6 +49,32 @@ def test_the_cost_gradient_matches_finite_differences(name):
         d /= np.linalg.norm(d)
         fd = (total(U + eps * d)[0] - total(U - eps * d)[0]) / (2 * eps)
         assert abs(fd - np.sum(grad * d)) < 1e-6 * abs(fd), (fd, np.sum(grad * d))
+
+
+def make_ensemble(name):
+    """Two members of one normalisation, other weights."""
+    first = make_model(name)
+    other = Model(random_theta(np.random.default_rng(9), first.spec), first.spec, first.x_mean, first.x_std,
+                  first.u_mean, first.u_std)
+    return Ensemble([first, other])
+
+
+@pytest.mark.parametrize("name", ["mpnode", "node"])
+def test_an_ensemble_plans_through_its_members_mean(name):
+    """The prediction is Ensemble.rollout's (the members' mean) and its gradient matches finite differences."""
+    rng = np.random.default_rng(3)
+    ensemble, g = make_ensemble(name), graph()
+    x0, U = rng.standard_normal((B, N, DX)), rng.standard_normal((B, H, N, DU))
+    mpc = ShootingMPC(ensemble, g, H)
+    mpc.reset(x0, 0.0)
+    z0 = [z.copy() for z in mpc._z]
+    X, vjp = mpc._predict(z0, U)
+    np.testing.assert_allclose(X, ensemble.rollout(x0, g, U), rtol=1e-12, atol=1e-12)
+    dX = rng.standard_normal(X.shape)
+    grad, d, eps = vjp(dX), rng.standard_normal(U.shape), 1e-6
+    fd = (np.sum(dX * mpc._predict(z0, U + eps * d)[0]) - np.sum(dX * mpc._predict(z0, U - eps * d)[0])) / (2 * eps)
+    assert abs(fd - np.sum(grad * d)) < 1e-6 * abs(fd)
+    assert mpc.control(x0, tracking_cost(np.zeros(DX), [1.0, 1.0], [0.1, 0.1])).shape == (B, N, DU)
 
 
 def test_optimise_controls_keeps_to_its_bounds():

@@ -77,7 +77,8 @@ class ShootingMPC:
     starts: right when the data start anywhere in the state space, and in a loop longer than
     the training horizon, where carried messages may drift where training never took them).
     The model runs in float64 (a float32 model is copied: the line search needs its cost to
-    more digits than float32 gives).
+    more digits than float32 gives).  An Ensemble plans through its members' mean prediction
+    (the gradient is the mean of theirs), each member carrying its own messages.
 
     >>> mpc = ShootingMPC(model, graph, horizon=10, bounds=(0.0, 4.66))
     >>> mpc.reset(x0, u_guess)                      # (B, N, dx), (B, N, du)
@@ -95,6 +96,7 @@ class ShootingMPC:
         horizon = check_int(horizon, "ShootingMPC", "horizon", 1)
         iterations = check_int(iterations, "ShootingMPC", "iterations", 1)
         self.model = model.copy(np.float64)
+        self.members = getattr(self.model, "members", [self.model])
         self.graph, self.horizon, self.bounds, self.iterations = graph, horizon, bounds, iterations
         self.messages = messages
         self.info = None  # the last optimisation's cost, iterations, evaluations, seconds
@@ -104,27 +106,38 @@ class ShootingMPC:
         x0 = np.asarray(x0, dtype=np.float64)
         self._shape = x0.shape
         self._flat = batch_graph(self.graph, x0.shape[0])
-        self._z = engine.initial_state(self.model.spec, self.model.normalize_x(x0).reshape(-1, x0.shape[2]))
+        self._z = [engine.initial_state(m.spec, m.normalize_x(x0).reshape(-1, x0.shape[2])) for m in self.members]
         guess = np.broadcast_to(np.asarray(u_guess, dtype=np.float64), x0.shape[:2] + (self.model.spec.control_dim,))
         self.plan = np.repeat(guess[:, None], self.horizon, axis=1)
 
     def control(self, x, cost):
         """The control (B, N, du) to apply now, from the observed state x (B, N, dx)."""
-        m, spec = self.model, self.model.spec
-        self._z[:, :spec.state_dim] = m.normalize_x(np.asarray(x)).reshape(-1, spec.state_dim)
-        if self.messages == "zero":
-            self._z[:, spec.state_dim:] = 0
-        z0 = self._z.copy()
+        dx = self.model.spec.state_dim
+        for m, z in zip(self.members, self._z):
+            z[:, :dx] = m.normalize_x(np.asarray(x)).reshape(-1, dx)
+            if self.messages == "zero":
+                z[:, dx:] = 0
+        z0 = [z.copy() for z in self._z]
         self.plan, self.info = optimise_controls(lambda U: self._predict(z0, U), cost, self.plan, self.bounds,
                                                  self.iterations)
         u = self.plan[:, 0].copy()
-        _, self._z = engine.integrate(spec, m.theta, z0, self._flat, to_time_major(m.normalize_u(u[:, None])), 1)
+        for i, m in enumerate(self.members):
+            _, self._z[i] = engine.integrate(m.spec, m.theta, z0[i], self._flat,
+                                             to_time_major(m.normalize_u(u[:, None])), 1)
         self.plan = np.concatenate([self.plan[:, 1:], self.plan[:, -1:]], axis=1)  # the next warm start
         return u
 
     def _predict(self, z0, U):
-        """(X (B, H+1, N, dx) in data units, vjp: dX -> dU) of the model from the full state z0."""
-        m, spec = self.model, self.model.spec
+        """(X (B, H+1, N, dx) in data units, vjp: dX -> dU): the members' mean from their full states z0."""
+        each = [self._predict_member(m, z, U) for m, z in zip(self.members, z0)]
+        if len(each) == 1:
+            return each[0]
+        X = np.mean([x for x, _ in each], axis=0)
+        return X, lambda dX: np.mean([grad(dX) for _, grad in each], axis=0)
+
+    def _predict_member(self, m, z0, U):
+        """One model's (X, vjp) from its full state z0."""
+        spec = m.spec
         b, n, dx = self._shape
         un = to_time_major(m.normalize_u(U))
         xs, vjp = engine.integrate_with_vjp(spec, m.theta, z0, self._flat, un, U.shape[1])
