@@ -5,11 +5,15 @@ takes its per-trajectory spread and error apart: how much they differ between tr
 share of the squared error common to every trajectory, the Spearman correlation per state group
 (the file's `state_groups`) and per dimension, under other readings of the spread (the training
 data's units, a geometric mean or median over dimensions, absolute instead of squared, early steps
-only), and against how far each trajectory's truth lies from the average one.  Prints one JSON
-object; the table in docs/evidence/ensembles.md ("quad3 -> quad6") comes from it.
+only), against how far each trajectory's truth lies from the average one, how high it lies (its
+mean level) and how much it moves over the horizon.  With --step-scale-from OTHER.h5 the spread is
+also rescaled per step by the ratio of error to spread that the ensemble shows on OTHER (a
+calibration per step instead of one per dimension) and ranked again.  Prints one JSON object; the
+tables in docs/evidence/ensembles.md ("quad3 -> quad6", "gene16 -> gene64") come from it.
 
-    python benchmarks/studies/spread_ranking.py ENSEMBLE.h5 TEST.h5
+    python benchmarks/studies/spread_ranking.py ENSEMBLE.h5 TEST.h5 [--step-scale-from OTHER.h5]
 """
+import argparse
 import json
 import sys
 
@@ -42,7 +46,16 @@ def readings(err, sp, mean, truth, s, var, x_std):
     return out
 
 
-def main(model_path, data_path):
+def step_scale(model, data_path, steps):
+    """(steps,) per step, the root of the mean squared error over the mean squared spread on another file."""
+    r = evaluate(model, read_trajectories(data_path))
+    err, s = (r.predictions - r.scored)[:, 1:steps + 1], r.spread[:, 1:steps + 1]
+    if err.shape[1] < steps:
+        sys.exit(f"{data_path} has {err.shape[1]} steps, fewer than the test file's {steps}")
+    return np.sqrt(np.nanmean(err ** 2, axis=(0, 2, 3)) / np.mean(s ** 2, axis=(0, 2, 3)))
+
+
+def main(model_path, data_path, other=None):
     model = Model.load(model_path)
     r = evaluate(model, read_trajectories(data_path))
     if r.spread is None:
@@ -61,10 +74,21 @@ def main(model_path, data_path):
            "per_group": {g: spearman(per_trajectory(sp, dims), per_trajectory(err, dims)) for g, dims in (r.groups or {}).items()},
            "per_dim": [spearman(per_trajectory(sp, [d]), per_trajectory(err, [d])) for d in range(err.shape[-1])],
            "readings": readings(err, sp, mean, truth, s, var, model.x_std)}
+    level = per_trajectory(truth / np.sqrt(var))  # the truth's mean, in the test file's standard deviations
+    moves = per_trajectory(np.broadcast_to(truth.var(axis=1, keepdims=True) / var, truth.shape))
+    out["spearman_error_vs_level"], out["spearman_spread_vs_level"] = spearman(level, e), spearman(level, q)
+    out["spearman_error_vs_movement"], out["spearman_spread_vs_movement"] = spearman(moves, e), spearman(moves, q)
+    if other is not None:
+        scale = step_scale(model, other, truth.shape[1])
+        out["step_scale"] = scale.tolist()
+        out["spearman_step_scaled"] = spearman(per_trajectory((s * scale[None, :, None, None]) ** 2 / var), e)
     print(json.dumps(out, default=float))
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 3:
-        sys.exit(__doc__.rsplit("\n\n", 1)[-1])
-    main(*sys.argv[1:])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("ensemble")
+    ap.add_argument("test")
+    ap.add_argument("--step-scale-from", metavar="OTHER.h5", help="fit a spread scale per step on this file")
+    a = ap.parse_args()
+    main(a.ensemble, a.test, a.step_scale_from)
