@@ -77,17 +77,18 @@ def test_an_ensemble_plans_through_its_members_mean(name):
     assert mpc.control(x0, tracking_cost(np.zeros(DX), [1.0, 1.0], [0.1, 0.1])).shape == (B, N, DU)
 
 
+def cumulative(U):
+    """x_k = the sum of the controls so far, from 0: (X, vjp) as optimise_controls takes them."""
+    X = np.concatenate([np.zeros((1, 1, 1, 2)), np.cumsum(U, axis=1)], axis=1)
+    return X, lambda dX: np.cumsum(dX[:, :0:-1], axis=1)[:, ::-1]
+
+
 def test_optimise_controls_keeps_to_its_bounds():
     """x_k = the sum of the controls so far, a target beyond reach: every control at its bound."""
-    def predict(U):
-        X = np.concatenate([np.zeros((1, 1, 1, 2)), np.cumsum(U, axis=1)], axis=1)
-        return X, lambda dX: np.cumsum(dX[:, :0:-1], axis=1)[:, ::-1]
-
     cost = tracking_cost(np.array([1.0, -1.0]), [1.0, 1.0], [0.0, 0.0])
-    U, info = optimise_controls(predict, cost, np.zeros((1, H, 1, 2)), bounds=(-0.06, 0.1), iterations=50)
+    U, info = optimise_controls(cumulative, cost, np.zeros((1, H, 1, 2)), bounds=(-0.06, 0.1), iterations=50)
     np.testing.assert_allclose(U[0, :, 0], np.broadcast_to([0.1, -0.06], (H, 2)), atol=1e-9)
     assert info["iterations"] >= 1 and info["evaluations"] >= 1
-
 
 
 def test_the_optimiser_runs_blas_on_one_thread():
@@ -102,8 +103,7 @@ def test_the_optimiser_runs_blas_on_one_thread():
 
     def predict(U):
         seen.append(blas_threads())
-        X = np.concatenate([np.zeros((1, 1, 1, 2)), np.cumsum(U, axis=1)], axis=1)
-        return X, lambda dX: np.cumsum(dX[:, :0:-1], axis=1)[:, ::-1]
+        return cumulative(U)
 
     cost = tracking_cost(np.array([1.0, -1.0]), [1.0, 1.0], [0.0, 0.0])
     with threadpool_limits(limits=2, user_api="blas"):
@@ -111,6 +111,7 @@ def test_the_optimiser_runs_blas_on_one_thread():
         optimise_controls(predict, cost, np.zeros((1, H, 1, 2)), iterations=5)
         assert blas_threads() == {2}
     assert seen and all(s == {1} for s in seen)
+
 
 @pytest.fixture
 def one_thread():

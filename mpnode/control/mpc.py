@@ -106,24 +106,26 @@ class ShootingMPC:
         x0 = np.asarray(x0, dtype=np.float64)
         self._shape = x0.shape
         self._flat = batch_graph(self.graph, x0.shape[0])
-        self._z = [engine.initial_state(m.spec, m.normalize_x(x0).reshape(-1, x0.shape[2])) for m in self.members]
+        xn = self.model.normalize_x(x0).reshape(-1, x0.shape[2])
+        self._z = [engine.initial_state(m.spec, xn) for m in self.members]
         guess = np.broadcast_to(np.asarray(u_guess, dtype=np.float64), x0.shape[:2] + (self.model.spec.control_dim,))
         self.plan = np.repeat(guess[:, None], self.horizon, axis=1)
 
     def control(self, x, cost):
         """The control (B, N, du) to apply now, from the observed state x (B, N, dx)."""
-        dx = self.model.spec.state_dim
-        for m, z in zip(self.members, self._z):
-            z[:, :dx] = m.normalize_x(np.asarray(x)).reshape(-1, dx)
+        m, dx = self.model, self.model.spec.state_dim  # an ensemble's members share one normalisation
+        xn = m.normalize_x(np.asarray(x)).reshape(-1, dx)
+        for z in self._z:
+            z[:, :dx] = xn
             if self.messages == "zero":
                 z[:, dx:] = 0
         z0 = [z.copy() for z in self._z]
         self.plan, self.info = optimise_controls(lambda U: self._predict(z0, U), cost, self.plan, self.bounds,
                                                  self.iterations)
         u = self.plan[:, 0].copy()
-        for i, m in enumerate(self.members):
-            _, self._z[i] = engine.integrate(m.spec, m.theta, z0[i], self._flat,
-                                             to_time_major(m.normalize_u(u[:, None])), 1)
+        un = to_time_major(m.normalize_u(u[:, None]))
+        self._z = [engine.integrate(member.spec, member.theta, z, self._flat, un, 1)[1]
+                   for member, z in zip(self.members, z0)]
         self.plan = np.concatenate([self.plan[:, 1:], self.plan[:, -1:]], axis=1)  # the next warm start
         return u
 

@@ -18,7 +18,7 @@ import control_jacobians as cj
 from data_gen import quadrotor as quad
 from mpnode import Model, Simulator, read_trajectories
 from mpnode.base.graph import Graph
-from true_equations import rk4_step
+from true_equations import rk4_rollout
 
 N = 3
 BLOCKS = {"pos": [0, 1, 2], "vel": [7, 8, 9]}
@@ -35,16 +35,11 @@ def perturbations(eps):
 
 def true_states(x, load, U, dF, substeps=10, dt=0.1):
     """(H, 1 + columns, N, 13): the true equations by RK4 at dt / substeps, dF added to U[0]."""
-    p, ncol = quad.Physics(), dF.shape[0] + 1
-    Y = np.repeat(quad.pack(x, load)[:, None], ncol, axis=1)
-    out = []
-    for k in range(U.shape[0]):
-        Fs = np.repeat(U[k][..., None], ncol, axis=-1)
-        if k == 0:
-            Fs[..., 1:] += np.moveaxis(dF, 0, -1)
-        Y = rk4_step(p, Y, Fs, dt, substeps)
-        out.append(Y[:13 * N].T.reshape(ncol, N, 13).copy())
-    return np.stack(out)
+    ncol = dF.shape[0] + 1
+    F = np.repeat(U[..., None], ncol, axis=-1)
+    F[0, ..., 1:] += np.moveaxis(dF, 0, -1)
+    Y = rk4_rollout(quad.Physics(), quad.pack(x, load), F, dt, substeps)[1:]
+    return np.ascontiguousarray(Y[:, :13 * N].transpose(0, 2, 1)).reshape(len(Y), ncol, N, 13)
 
 
 def model_states(model, x, U, dF):

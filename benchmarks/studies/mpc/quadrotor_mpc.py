@@ -35,7 +35,7 @@ from data_gen import quadrotor as quad
 from mpnode import Model
 from mpnode.base.graph import Graph
 from mpnode.control import ShootingMPC, optimise_controls, tracking_cost
-from true_equations import rk4_step
+from true_equations import rk4_rollout
 
 N, DT, STEPS = 3, 0.1, 50
 #: cost weights per state dimension: position, quaternion, velocity, body rates; per thrust
@@ -83,21 +83,12 @@ class TruePredictor:
     def __init__(self, physics, substeps=10, eps=1e-6):
         self.p, self.substeps, self.eps = physics, substeps, eps
 
-    def rollout(self, y, F):
-        """States (H+1, 13 N + 6, k) from y under thrusts F (H, N, 4, k), held per step."""
-        Y = np.repeat(y[:, None], F.shape[-1], axis=1)
-        out = [Y]
-        for t in range(F.shape[0]):
-            Y = rk4_step(self.p, Y, F[t], DT, self.substeps)
-            out.append(Y)
-        return np.stack(out)
-
     def __call__(self, y, U):
         """(X (1, H+1, N, 13), vjp) for U (1, H, N, 4)."""
         n = U[0].size
         F = np.repeat(U[0][..., None], n + 1, axis=-1)
         F.reshape(n, n + 1)[:, 1:] += self.eps * np.eye(n)
-        Y = self.rollout(y, F)
+        Y = rk4_rollout(self.p, y, F, DT, self.substeps)
         quads = Y[:, :13 * N].reshape(len(Y), N, 13, n + 1)
         X = quads[..., 0][None]
 
