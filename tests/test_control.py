@@ -77,6 +77,32 @@ def test_an_ensemble_plans_through_its_members_mean(name):
     assert mpc.control(x0, tracking_cost(np.zeros(DX), [1.0, 1.0], [0.1, 0.1])).shape == (B, N, DU)
 
 
+@pytest.mark.parametrize("name", KINDS)
+def test_offset_free_plans_add_the_last_one_step_error_per_step(name, one_thread):
+    """offset_free: after a step that landed at x1 where the model expected x1_hat, every plan
+    predicts the model's rollout from x1 plus h (x1 - x1_hat) at step h; the gradient is unchanged."""
+    model, g = make_model(name), graph()
+    rng = np.random.default_rng(6)
+    x0, U = rng.standard_normal((B, N, DX)), rng.standard_normal((B, H, N, DU))
+    cost = tracking_cost(np.zeros(DX), [1.0, 1.0], [0.1, 0.1])
+    mpc = ShootingMPC(model, g, H, bounds=(-1.0, 1.0), iterations=5, messages="zero", offset_free=True)
+    mpc.reset(x0, 0.0)
+    u = mpc.control(x0, cost)
+    x1_hat = model.rollout(x0, g, u[:, None])[:, 1]
+    x1 = x1_hat + rng.standard_normal(x1_hat.shape)
+    mpc.control(x1, cost)
+    z1 = [z.copy() for z in mpc._z]
+    for z in z1:
+        z[:, :DX], z[:, DX:] = model.normalize_x(x1).reshape(-1, DX), 0
+    X, vjp = mpc._predict(z1, U)
+    steps = np.arange(H + 1)[None, :, None, None]
+    np.testing.assert_allclose(X, model.rollout(x1, g, U) + steps * (x1 - x1_hat)[:, None], rtol=1e-10, atol=1e-10)
+    plain = ShootingMPC(model, g, H, messages="zero")
+    plain.reset(x1, 0.0)
+    dX = rng.standard_normal(X.shape)
+    np.testing.assert_allclose(vjp(dX), plain._predict(z1, U)[1](dX), rtol=1e-12, atol=1e-12)
+
+
 def cumulative(U):
     """x_k = the sum of the controls so far, from 0: (X, vjp) as optimise_controls takes them."""
     X = np.concatenate([np.zeros((1, 1, 1, 2)), np.cumsum(U, axis=1)], axis=1)

@@ -76,6 +76,10 @@ class ShootingMPC:
     previous observation under the control applied) or "zero" (0, as every training window
     starts: right when the data start anywhere in the state space, and in a loop longer than
     the training horizon, where carried messages may drift where training never took them).
+    offset_free: every plan's prediction at step h also gets h times the model's last one-step
+    error (the observed state minus what the model predicted for it under the control applied):
+    a learned model's errors along a path change slowly, so the last one is the best guess of the
+    next, as offset-free MPC estimates a constant disturbance; the gradient is the model's.
     The model runs in float64 (a float32 model is copied: the line search needs its cost to
     more digits than float32 gives).  An Ensemble plans through its members' mean prediction
     (the gradient is the mean of theirs), each member carrying its own messages.
@@ -88,7 +92,7 @@ class ShootingMPC:
 
     """
 
-    def __init__(self, model, graph, horizon, bounds=None, iterations=30, messages="carry"):
+    def __init__(self, model, graph, horizon, bounds=None, iterations=30, messages="carry", offset_free=False):
         if not model.spec.control_dim:
             raise InputError("ShootingMPC", "model", "has no controls to optimise (du = 0)", "a model with controls")
         if messages not in ("carry", "zero"):
@@ -98,7 +102,7 @@ class ShootingMPC:
         self.model = model.copy(np.float64)
         self.members = getattr(self.model, "members", [self.model])
         self.graph, self.horizon, self.bounds, self.iterations = graph, horizon, bounds, iterations
-        self.messages = messages
+        self.messages, self.offset_free = messages, offset_free
         self.info = None  # the last optimisation's cost, iterations, evaluations, seconds
 
     def reset(self, x0, u_guess):
@@ -110,11 +114,15 @@ class ShootingMPC:
         self._z = [engine.initial_state(m.spec, xn) for m in self.members]
         guess = np.broadcast_to(np.asarray(u_guess, dtype=np.float64), x0.shape[:2] + (self.model.spec.control_dim,))
         self.plan = np.repeat(guess[:, None], self.horizon, axis=1)
+        self._expected, self._drift = None, np.zeros(x0.shape)
 
     def control(self, x, cost):
         """The control (B, N, du) to apply now, from the observed state x (B, N, dx)."""
         m, dx = self.model, self.model.spec.state_dim  # an ensemble's members share one normalisation
-        xn = m.normalize_x(np.asarray(x)).reshape(-1, dx)
+        x = np.asarray(x, dtype=np.float64)
+        if self.offset_free and self._expected is not None:
+            self._drift = x - self._expected
+        xn = m.normalize_x(x).reshape(-1, dx)
         for z in self._z:
             z[:, :dx] = xn
             if self.messages == "zero":
@@ -126,15 +134,16 @@ class ShootingMPC:
         un = to_time_major(m.normalize_u(u[:, None]))
         self._z = [engine.integrate(member.spec, member.theta, z, self._flat, un, 1)[1]
                    for member, z in zip(self.members, z0)]
+        self._expected = np.mean([m.denormalize_x(z[:, :dx].reshape(x.shape)) for z in self._z], axis=0)
         self.plan = np.concatenate([self.plan[:, 1:], self.plan[:, -1:]], axis=1)  # the next warm start
         return u
 
     def _predict(self, z0, U):
         """(X (B, H+1, N, dx) in data units, vjp: dX -> dU): the members' mean from their full states z0."""
         each = [self._predict_member(m, z, U) for m, z in zip(self.members, z0)]
+        X = np.mean([x for x, _ in each], axis=0) + self._drift[:, None] * np.arange(U.shape[1] + 1)[:, None, None]
         if len(each) == 1:
-            return each[0]
-        X = np.mean([x for x, _ in each], axis=0)
+            return X, each[0][1]
         return X, lambda dX: np.mean([grad(dX) for _, grad in each], axis=0)
 
     def _predict_member(self, m, z0, U):

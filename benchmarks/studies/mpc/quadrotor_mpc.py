@@ -13,15 +13,18 @@ reference formation (positions, velocities, the attitude of the nominal thrust, 
 and thrusts away from the nominal ones.  With --anchor W > 0 (a regularised MPC, for both
 MPCs alike) the first step's thrusts are also charged W (F - F_scene)^2, F_scene the scene
 controller's thrusts at the observed state: the plan may depart from a controller known to
-fly only as far as the model's predicted gain pays for.  The paths are new: start and goal
-drawn as the scene draws them but from other seeds, and the doorway moved (sideways by up to
-0.4 m, up by up to 0.3 m), where the training data's doorway never moves.  Reported per
-controller: the load's tracking error (its distance to the reference path, mean and max over
-the run), the time per control step (mean, median and p95 of the wall time, and the mean CPU
+fly only as far as the model's predicted gain pays for.  With --offset-free the learned MPC
+adds to each plan's predictions its model's last one-step error, once per step
+(ShootingMPC(offset_free=True)): the true equations' own error is that of RK4 at dt / 10.
+The paths are new: start and goal drawn as the scene draws them but from other seeds, and the
+doorway moved (sideways by up to 0.4 m, up by up to 0.3 m), where the training data's doorway
+never moves.  Reported per controller: the load's tracking error (its distance to the reference
+path, mean and max over the run), the time per control step (mean, median and p95 of the wall time, and the mean CPU
 time of this process, which a shared or paused machine does not inflate) and the mean
 |F - F_scene| of the thrusts applied.  No thrust noise, nominal gains.
 
-    python benchmarks/studies/mpc/quadrotor_mpc.py MODEL.h5 [--paths 20] [--horizon 10] [--anchor W] [--out DIR]
+    python benchmarks/studies/mpc/quadrotor_mpc.py MODEL.h5 [--paths 20] [--horizon 10] [--anchor W] \
+        [--offset-free] [--out DIR]
 """
 import argparse
 import json
@@ -118,9 +121,9 @@ def true_mpc(ref, physics, horizon, iterations, anchor):
     return control
 
 
-def learned_mpc(model, ref, physics, horizon, iterations, messages, anchor):
+def learned_mpc(model, ref, physics, horizon, iterations, messages, anchor, offset_free=False):
     mpc = ShootingMPC(model, Graph.complete(N), horizon, bounds=(0.0, physics.F_max), iterations=iterations,
-                      messages=messages)
+                      messages=messages, offset_free=offset_free)
     started, scene = [], scene_controller(ref, physics)
 
     def control(t, y):
@@ -175,14 +178,17 @@ def main():
                     help="the learned model's messages at the start of each plan (ShootingMPC)")
     ap.add_argument("--anchor", type=float, default=0.0,
                     help="weight of the first thrusts' distance to the scene controller's, both MPCs (0: none)")
+    ap.add_argument("--offset-free", action="store_true",
+                    help="the learned MPC adds its model's last one-step error, once per step, to every plan's predictions")
     ap.add_argument("--out", default=os.path.dirname(os.path.abspath(__file__)))
     a = ap.parse_args()
     model = Model.load(a.model)
     makers = {"scene": scene_controller,
               "true": lambda ref, p: true_mpc(ref, p, a.horizon, a.iterations, a.anchor),
-              "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages, a.anchor)}
+              "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages, a.anchor,
+                                                     a.offset_free)}
     results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations,
-               "messages": a.messages, "anchor": a.anchor, "paths": []}
+               "messages": a.messages, "anchor": a.anchor, "offset_free": a.offset_free, "paths": []}
     for p in range(a.paths):
         path = new_path(a.first_seed + p)
         row = {"seed": a.first_seed + p, "start": path[0].tolist(), "goal": path[1].tolist(), "door": path[2].tolist()}
