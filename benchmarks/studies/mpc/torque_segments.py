@@ -8,13 +8,19 @@ large: the attitude loop is weak at dt = 0.1 s, and such torques over a whole fl
 quadrotor far beyond the scene's tilts (docs/evidence/control.md).  A segment that tilts a quadrotor beyond --max-tilt degrees (or whose
 solver fails) is re-drawn from its own generator.
 
+With --nominal there is no controller either: the flight's own recorded thrusts are replayed from
+its state at the segment's start, plus fresh offsets every step.  That is what an MPC plan is, a
+thrust sequence near a flyable one that no feedback corrects within the plan, and it shows what
+thrusts do over several steps without a controller's reaction mixed in.  The swarm is so
+unstable open loop that fresh offsets of 0.05 N over five steps already tilt it by tens of degrees.
+
 With --draws K, K segments start from each drawn state, each with its own thrusts: only the
 thrusts explain their differences (a re-drawn segment keeps its start).  The group of segments
 j*K .. j*K+K-1 draws everything from SeedSequence(--seed, spawn_key=(j,)) (K = 1: segment j).  Train on it beside the
 scene's file, so that the model still predicts the scene's flights:
 
     python benchmarks/studies/mpc/torque_segments.py quad3.h5 OUT.h5 [-B 4000] [--steps 10] \\
-        [--torque 0.3] [--collective 0.3]
+        [--torque 0.3] [--collective 0.3] [--open-loop | --open-steps K | --nominal]
 """
 import argparse
 import math
@@ -30,6 +36,17 @@ from mpnode.data import Trajectories
 MAX_TRIES = 1000
 
 
+def offsets(rng, n, a):
+    """(n, 4) thrust offsets of one step: a collective N(0, --collective^2) and a torque pattern of --torque."""
+    return quad.excitation(rng, n, a.collective, a.torque / a.collective)[0]
+
+
+def start(rng, data, a):
+    """A segment's trajectory and first step; --nominal needs the flight's thrusts for every step."""
+    last = data.horizon - a.steps + 1 if a.nominal else data.horizon - 1
+    return rng.integers(data.n_trajectories), rng.integers(last)
+
+
 def segment(rng, data, a, physics, b, k0):
     """One segment from step k0 of trajectory b: dict x (T+1, n, 13), u (T, n, 4), load (T+1, 6),
     or None when it tipped over."""
@@ -42,9 +59,10 @@ def segment(rng, data, a, physics, b, k0):
     hold = np.repeat(data.u[b, k0].mean(axis=1, keepdims=True), quad.CONTROL_DIM, axis=1)
     for s in range(a.steps):
         t = (k0 + s) * dt
-        if a.open_loop or s < a.open_steps:  # the start's collective thrusts without torques, held, plus fresh offsets
-            F = np.clip(hold + quad.excitation(rng, n, a.collective, a.torque / a.collective)[0],
-                        0.0, physics.F_max)
+        if a.nominal:  # the flight's own thrusts replayed without feedback, plus fresh offsets
+            F = np.clip(data.u[b, k0 + s] + offsets(rng, n, a), 0.0, physics.F_max)
+        elif a.open_loop or s < a.open_steps:  # the start's collective thrusts without torques, held, plus fresh offsets
+            F = np.clip(hold + offsets(rng, n, a), 0.0, physics.F_max)
         else:
             F, _ = control(t, quad.unpack(y, n)[0])
             F = quad.disturbed_thrusts(rng, s, F, extra, a.collective, a.torque / a.collective,
@@ -75,6 +93,9 @@ def main():
     ap.add_argument("--open-steps", type=int, default=0,
                     help="the first K steps open loop as --open-loop has them, the rest under the controller: what the "
                          "first steps' thrusts do over the steps after them, as a plan's first thrusts in MPC")
+    ap.add_argument("--nominal", action="store_true",
+                    help="no controller: the flight's own recorded thrusts replayed from its state, plus fresh offsets "
+                         "every step (a plan's thrust sequence near a flyable one, which no feedback corrects)")
     ap.add_argument("--max-tilt", type=float, default=50.0, help="re-draw a segment tilting beyond this (deg)")
     ap.add_argument("--draws", type=int, default=1, help="segments (thrust draws) per drawn start state")
     ap.add_argument("--seed", type=int, default=1)
@@ -83,13 +104,13 @@ def main():
     runs, redrawn = [], 0
     for j in range(-(-a.segments // a.draws)):
         rng = np.random.default_rng(np.random.SeedSequence(a.seed, spawn_key=(j,)))
-        b, k0 = rng.integers(data.n_trajectories), rng.integers(data.horizon - 1)
+        b, k0 = start(rng, data, a)
         for _ in range(min(a.draws, a.segments - j * a.draws)):
             tries = 0
             while (r := segment(rng, data, a, physics, b, k0)) is None:
                 redrawn, tries = redrawn + 1, tries + 1
                 if a.draws == 1:  # a lone segment is re-drawn whole, start included
-                    b, k0 = rng.integers(data.n_trajectories), rng.integers(data.horizon - 1)
+                    b, k0 = start(rng, data, a)
                 elif tries == MAX_TRIES:
                     raise SystemExit(f"no segment of {a.steps} steps from trajectory {b}, step {k0} stays within "
                                      f"{a.max_tilt} degrees in {MAX_TRIES} draws: lower --torque or --steps, or raise --max-tilt")
@@ -99,7 +120,8 @@ def main():
                         attrs={**quad.PARAMS, "scene": "quad3", "seed": a.seed, "redrawn": redrawn,
                                "segment_torque": a.torque, "segment_collective": a.collective,
                                "segment_draws": a.draws,
-                               "segment_open_steps": a.steps if a.open_loop else a.open_steps,
+                               "segment_open_steps": a.steps if a.open_loop or a.nominal else a.open_steps,
+                               "segment_nominal": int(a.nominal),
                                "segment_source": a.scene_file,
                                "description": "quad3 segments with torque offsets "
                                               "(benchmarks/studies/mpc/torque_segments.py)"},
