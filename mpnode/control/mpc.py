@@ -134,7 +134,8 @@ class ShootingMPC:
         un = to_time_major(m.normalize_u(u[:, None]))
         self._z = [engine.integrate(member.spec, member.theta, z, self._flat, un, 1)[1]
                    for member, z in zip(self.members, z0)]
-        self._expected = np.mean([m.denormalize_x(z[:, :dx].reshape(x.shape)) for z in self._z], axis=0)
+        if self.offset_free:
+            self._expected = np.mean([m.denormalize_x(z[:, :dx].reshape(x.shape)) for z in self._z], axis=0)
         self.plan = np.concatenate([self.plan[:, 1:], self.plan[:, -1:]], axis=1)  # the next warm start
         return u
 

@@ -19,9 +19,9 @@ adds to each plan's predictions its model's last one-step error, once per step
 The paths are new: start and goal drawn as the scene draws them but from other seeds, and the
 doorway moved (sideways by up to 0.4 m, up by up to 0.3 m), where the training data's doorway
 never moves.  Reported per controller: the load's tracking error (its distance to the reference
-path, mean and max over the run), the time per control step (mean, median and p95 of the wall time, and the mean CPU
-time of this process, which a shared or paused machine does not inflate) and the mean
-|F - F_scene| of the thrusts applied.  No thrust noise, nominal gains.
+path, mean and max over the run), the time per control step (mean, median and p95 of the wall
+time, and the mean CPU time of this process, which a shared or paused machine does not inflate)
+and the mean |F - F_scene| of the thrusts applied.  No thrust noise, nominal gains.
 
     python benchmarks/studies/mpc/quadrotor_mpc.py MODEL.h5 [--paths 20] [--horizon 10] [--anchor W] \
         [--offset-free] [--out DIR]
