@@ -380,7 +380,7 @@ def test_a_stopped_sweep_resumes_its_half_finished_training(data, tmp_path, stop
     proc = subprocess.Popen(args, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             preexec_fn=_default_sigint)
     try:
-        # generous: from a cold numba cache the pool process compiles what the warm-up did not
+        # generous: in a cold-cache run of the suite the kernel warm-up may still hold both cores
         deadline, past = time.monotonic() + 1200, False
         while time.monotonic() < deadline and proc.poll() is None:  # past the first test point (epoch 2000)
             past = (folder / "points" / "epoch-2000.h5").exists() and os.path.exists(state) \

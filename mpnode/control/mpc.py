@@ -114,14 +114,14 @@ class ShootingMPC:
         self._z = [engine.initial_state(m.spec, xn) for m in self.members]
         guess = np.broadcast_to(np.asarray(u_guess, dtype=np.float64), x0.shape[:2] + (self.model.spec.control_dim,))
         self.plan = np.repeat(guess[:, None], self.horizon, axis=1)
-        self._expected, self._drift = None, np.zeros(x0.shape)
+        self._expected, self._offset = None, 0.0
 
     def control(self, x, cost):
         """The control (B, N, du) to apply now, from the observed state x (B, N, dx)."""
         m, dx = self.model, self.model.spec.state_dim  # an ensemble's members share one normalisation
         x = np.asarray(x, dtype=np.float64)
-        if self.offset_free and self._expected is not None:
-            self._drift = x - self._expected
+        if self.offset_free and self._expected is not None:  # step h of every plan: h times the last error
+            self._offset = (x - self._expected)[:, None] * np.arange(self.horizon + 1)[:, None, None]
         xn = m.normalize_x(x).reshape(-1, dx)
         for z in self._z:
             z[:, :dx] = xn
@@ -142,7 +142,7 @@ class ShootingMPC:
     def _predict(self, z0, U):
         """(X (B, H+1, N, dx) in data units, vjp: dX -> dU): the members' mean from their full states z0."""
         each = [self._predict_member(m, z, U) for m, z in zip(self.members, z0)]
-        X = np.mean([x for x, _ in each], axis=0) + self._drift[:, None] * np.arange(U.shape[1] + 1)[:, None, None]
+        X = np.mean([x for x, _ in each], axis=0) + self._offset
         if len(each) == 1:
             return X, each[0][1]
         return X, lambda dX: np.mean([grad(dX) for _, grad in each], axis=0)

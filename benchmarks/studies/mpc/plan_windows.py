@@ -1,4 +1,6 @@
-"""Cut a trajectory file into consecutive windows of W steps, each a trajectory of its own.
+"""Cut a trajectory file into consecutive windows of W steps, each a trajectory of its own (the
+windows `mpnode train --train-window W` trains on: when W does not divide the horizon, a last
+window ends at it).
 
 A shooting MPC asks its model for W steps from whatever state it observes, messages at 0
 (`quadrotor_mpc.py --messages zero`).  A model trained on whole flights only ever started from
@@ -13,6 +15,7 @@ import numpy as np
 
 from mpnode import read_trajectories, write_trajectories
 from mpnode.data import Trajectories
+from mpnode.training.batches import window_starts
 
 
 def windows(a, starts, length):
@@ -29,7 +32,7 @@ def main():
     d = read_trajectories(a.flights)
     if not 1 <= a.steps <= d.horizon:
         raise SystemExit(f"{a.flights}: --steps must lie in 1..{d.horizon}, the file's horizon (got {a.steps})")
-    starts = range(0, d.horizon - a.steps + 1, a.steps)
+    starts = window_starts(d.horizon, a.steps)  # as --train-window cuts them
     aux = {"load": windows(d.aux["load"], starts, a.steps + 1)} if "load" in d.aux else {}
     u = None if d.u is None else windows(d.u, starts, a.steps)
     traj = Trajectories(x=windows(d.x, starts, a.steps + 1), u=u,
