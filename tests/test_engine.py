@@ -144,7 +144,7 @@ def test_feature_major_tiles_start_on_a_vector_boundary(dtype):
 
 @pytest.mark.parametrize("a", [1, 5, 6, 13, 32, 37, 64, 70])
 def test_feature_major_product_every_width(a):
-    """The product's chunks (32, 16, ..., 1) cover any input width, with or without a bias,
+    """The product's chunks (8, 4, 2, 1) cover any input width, with or without a bias,
     with the weights given transposed (as the backward pass does)."""
     rng = np.random.default_rng(a)
     n, c = 19, 11
@@ -155,6 +155,22 @@ def test_feature_major_product_every_width(a):
     WT = rng.standard_normal((c, a))
     feature_major.product(WT.T, b[:0], XT, YT)
     np.testing.assert_allclose(YT, WT @ XT, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("a, c", [(1, 1), (2, 4), (5, 3), (13, 32), (32, 26), (33, 7)])
+def test_feature_major_param_cotangent_every_width(a, c):
+    """The parameter cotangents (inputs in pairs, outputs in fours, then the odd ones left)
+    add XT GYT^T and the rows' sums into what the buffers hold, for every remainder."""
+    rng = np.random.default_rng(a * 100 + c)
+    n = 19
+    XT, GYT = rng.standard_normal((a, n)), rng.standard_normal((c, n))
+    gW, gb = rng.standard_normal((a, c)), rng.standard_normal(c)
+    want_W, want_b = gW + XT @ GYT.T, gb + GYT.sum(axis=1)
+    feature_major.param_cotangent(XT, GYT, gW, gb)
+    np.testing.assert_allclose(gW, want_W, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(gb, want_b, rtol=1e-12, atol=1e-12)
+    feature_major.param_cotangent(XT, GYT, gW, gb[:0])  # no bias: only gW changes
+    np.testing.assert_allclose(gW, want_W + XT @ GYT.T, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("width", [1, 2, 3, 4, 5, 7, 8, 13])

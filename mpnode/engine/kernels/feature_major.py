@@ -2,9 +2,12 @@
 
 With the nodes along the contiguous axis every product vectorises over nodes, and the sum
 over the layer's inputs is unrolled at compile time: one compiled kernel per chunk width
-(32, 16, 8, 4, 2, 1), an input width being the sum of its binary digits.  For each output
-row the running sums of a chunk stay in registers (one FMA per input, the weight broadcast
-from memory) and the row is stored once per chunk; a 32-wide hidden layer is one pass.
+(8, 4, 2, 1), an input width being 8s and then its binary digits.  For each output row the
+running sums of a chunk stay in registers (one FMA per input, the weight broadcast from
+memory) and the row is stored once per chunk.  A chunk's sums are one chain of dependent
+FMAs, so a short chunk leaves the core more chains in flight: on an Intel Cascade Lake core
+chunks of 8 ran the model's layers 1.5x faster than one 32-wide pass
+(docs/evidence/speed.md#shorter-chains-for-intel-cores).
 BLAS's small-GEMM calls, which these replace, reached half the machine's rate on the
 model's widths (docs/evidence/speed.md#the-engine-against-the-flop-floor-and-the-peers).
 """
@@ -13,7 +16,7 @@ from numba import njit
 
 from .layers import JIT, tanh
 
-CHUNKS = (32, 16, 8, 4, 2, 1)
+CHUNKS = (8, 4, 2, 1)
 ALIGN = 64  # bytes: a 512-bit vector; loads that straddle two cache lines ran the products 1.3-1.5x slower
 
 
@@ -51,16 +54,12 @@ def _partial_product(width):
     return partial_product
 
 
-_P32, _P16, _P8, _P4, _P2, _P1 = (_partial_product(w) for w in CHUNKS)
+_P8, _P4, _P2, _P1 = (_partial_product(w) for w in CHUNKS)
 
 
 @njit(**JIT)
 def _chunk(width, W, b, XT, k0, YT, first):
-    if width == 32:
-        _P32(W, b, XT, k0, YT, first)
-    elif width == 16:
-        _P16(W, b, XT, k0, YT, first)
-    elif width == 8:
+    if width == 8:
         _P8(W, b, XT, k0, YT, first)
     elif width == 4:
         _P4(W, b, XT, k0, YT, first)
@@ -77,7 +76,7 @@ def product(W, b, XT, YT, act=False):
     a = W.shape[0]
     k0 = 0
     while k0 < a:
-        width = 32
+        width = CHUNKS[0]
         while width > a - k0:
             width //= 2
         _chunk(width, W, b, XT, k0, YT, k0 == 0)
@@ -131,7 +130,7 @@ def tanh_cotangent(YT, GYT):
 @njit(**JIT)
 def param_cotangent(XT, GYT, gW, gb):
     """gW (a, c) += XT GYT^T and gb (c,) += the rows' sums (gb empty: no bias): a layer's
-    parameter cotangents.  Four outputs per pass over the nodes share each load of XT."""
+    parameter cotangents, two inputs at a time (`_two_inputs`)."""
     a, n = XT.shape
     c = GYT.shape[0]
     zero = GYT.dtype.type(0)
@@ -140,24 +139,71 @@ def param_cotangent(XT, GYT, gW, gb):
         for r in range(n):
             s += GYT[j, r]
         gb[j] += s
+    for k in range(0, a - 1, 2):
+        _two_inputs(XT[k], XT[k + 1], GYT, gW[k], gW[k + 1])
+    if a % 2:
+        _one_input(XT[a - 1], GYT, gW[a - 1])
+
+
+@njit(**JIT)
+def _two_inputs(x, y, GYT, gx, gy):
+    """gx[j] += x . GYT[j] and gy[j] += y . GYT[j]: a 2 x 4 block of sums per pass over the
+    nodes, every load shared by two or four of them, eight independent FMA chains in flight
+    (four left an Intel core waiting on their latency: docs/evidence/speed.md#shorter-chains-for-intel-cores)."""
+    c, n = GYT.shape
+    zero = GYT.dtype.type(0)
     c4 = c - c % 4
-    for k in range(a):
-        x = XT[k]
-        for j in range(0, c4, 4):
-            g0, g1, g2, g3 = GYT[j], GYT[j + 1], GYT[j + 2], GYT[j + 3]
-            s0 = s1 = s2 = s3 = zero
-            for r in range(n):
-                xr = x[r]
-                s0 += xr * g0[r]
-                s1 += xr * g1[r]
-                s2 += xr * g2[r]
-                s3 += xr * g3[r]
-            gW[k, j] += s0
-            gW[k, j + 1] += s1
-            gW[k, j + 2] += s2
-            gW[k, j + 3] += s3
-        for j in range(c4, c):
-            s = zero
-            for r in range(n):
-                s += x[r] * GYT[j, r]
-            gW[k, j] += s
+    for j in range(0, c4, 4):
+        g0, g1, g2, g3 = GYT[j], GYT[j + 1], GYT[j + 2], GYT[j + 3]
+        s0 = s1 = s2 = s3 = t0 = t1 = t2 = t3 = zero
+        for r in range(n):
+            xr, yr = x[r], y[r]
+            s0 += xr * g0[r]
+            s1 += xr * g1[r]
+            s2 += xr * g2[r]
+            s3 += xr * g3[r]
+            t0 += yr * g0[r]
+            t1 += yr * g1[r]
+            t2 += yr * g2[r]
+            t3 += yr * g3[r]
+        gx[j] += s0
+        gx[j + 1] += s1
+        gx[j + 2] += s2
+        gx[j + 3] += s3
+        gy[j] += t0
+        gy[j + 1] += t1
+        gy[j + 2] += t2
+        gy[j + 3] += t3
+    for j in range(c4, c):
+        s = t = zero
+        for r in range(n):
+            s += x[r] * GYT[j, r]
+            t += y[r] * GYT[j, r]
+        gx[j] += s
+        gy[j] += t
+
+
+@njit(**JIT)
+def _one_input(x, GYT, gx):
+    """gx[j] += x . GYT[j], four outputs per pass: an odd input width's last input."""
+    c, n = GYT.shape
+    zero = GYT.dtype.type(0)
+    c4 = c - c % 4
+    for j in range(0, c4, 4):
+        g0, g1, g2, g3 = GYT[j], GYT[j + 1], GYT[j + 2], GYT[j + 3]
+        s0 = s1 = s2 = s3 = zero
+        for r in range(n):
+            xr = x[r]
+            s0 += xr * g0[r]
+            s1 += xr * g1[r]
+            s2 += xr * g2[r]
+            s3 += xr * g3[r]
+        gx[j] += s0
+        gx[j + 1] += s1
+        gx[j + 2] += s2
+        gx[j + 3] += s3
+    for j in range(c4, c):
+        s = zero
+        for r in range(n):
+            s += x[r] * GYT[j, r]
+        gx[j] += s
