@@ -141,8 +141,8 @@ def param_cotangent(XT, GYT, gW, gb):
         gb[j] += s
     for k in range(0, a - 1, 2):
         _two_inputs(XT[k], XT[k + 1], GYT, gW[k], gW[k + 1])
-    if a % 2:
-        _one_input(XT[a - 1], GYT, gW[a - 1])
+    if a % 2:  # the last input of an odd width, paired with itself (the copy's sums discarded)
+        _two_inputs(XT[a - 1], XT[a - 1], GYT, gW[a - 1], np.empty(c, gW.dtype))
 
 
 @njit(**JIT)
@@ -182,28 +182,3 @@ def _two_inputs(x, y, GYT, gx, gy):
         gx[j] += s
         gy[j] += t
 
-
-@njit(**JIT)
-def _one_input(x, GYT, gx):
-    """gx[j] += x . GYT[j], four outputs per pass: an odd input width's last input."""
-    c, n = GYT.shape
-    zero = GYT.dtype.type(0)
-    c4 = c - c % 4
-    for j in range(0, c4, 4):
-        g0, g1, g2, g3 = GYT[j], GYT[j + 1], GYT[j + 2], GYT[j + 3]
-        s0 = s1 = s2 = s3 = zero
-        for r in range(n):
-            xr = x[r]
-            s0 += xr * g0[r]
-            s1 += xr * g1[r]
-            s2 += xr * g2[r]
-            s3 += xr * g3[r]
-        gx[j] += s0
-        gx[j + 1] += s1
-        gx[j + 2] += s2
-        gx[j + 3] += s3
-    for j in range(c4, c):
-        s = zero
-        for r in range(n):
-            s += x[r] * GYT[j, r]
-        gx[j] += s
