@@ -157,20 +157,22 @@ def test_feature_major_product_every_width(a):
     np.testing.assert_allclose(YT, WT @ XT, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype, tol", [(np.float64, 1e-12), (np.float32, 1e-5)])
+@pytest.mark.parametrize("n", [0, 1, 19])
 @pytest.mark.parametrize("a, c", [(1, 1), (2, 4), (5, 3), (13, 32), (32, 26), (33, 7)])
-def test_feature_major_param_cotangent_every_width(a, c):
+def test_feature_major_param_cotangent_every_width(a, c, n, dtype, tol):
     """The parameter cotangents (inputs in pairs, outputs in fours, then the odd ones left)
     add XT GYT^T and the rows' sums into what the buffers hold, for every remainder."""
     rng = np.random.default_rng(a * 100 + c)
-    n = 19
-    XT, GYT = rng.standard_normal((a, n)), rng.standard_normal((c, n))
-    gW, gb = rng.standard_normal((a, c)), rng.standard_normal(c)
-    want_W, want_b = gW + XT @ GYT.T, gb + GYT.sum(axis=1)
+    XT, GYT = rng.standard_normal((a, n)).astype(dtype), rng.standard_normal((c, n)).astype(dtype)
+    gW, gb = rng.standard_normal((a, c)).astype(dtype), rng.standard_normal(c).astype(dtype)
+    product = XT.astype(np.float64) @ GYT.T.astype(np.float64)
+    want_W, want_b = gW + product, gb + GYT.sum(axis=1, dtype=np.float64)
     feature_major.param_cotangent(XT, GYT, gW, gb)
-    np.testing.assert_allclose(gW, want_W, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(gb, want_b, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(gW, want_W, rtol=tol, atol=tol)
+    np.testing.assert_allclose(gb, want_b, rtol=tol, atol=tol)
     feature_major.param_cotangent(XT, GYT, gW, gb[:0])  # no bias: only gW changes
-    np.testing.assert_allclose(gW, want_W + XT @ GYT.T, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(gW, want_W + product, rtol=tol, atol=tol)
 
 
 @pytest.mark.parametrize("width", [1, 2, 3, 4, 5, 7, 8, 13])

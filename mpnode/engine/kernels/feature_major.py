@@ -2,11 +2,11 @@
 
 With the nodes along the contiguous axis every product vectorises over nodes, and the sum
 over the layer's inputs is unrolled at compile time: one compiled kernel per chunk width
-(8, 4, 2, 1), an input width being 8s and then its binary digits.  For each output row the
+(8, 4, 2, 1): a width splits into 8s, then the binary digits of the rest (13 = 8 + 4 + 1).  For each output row the
 running sums of a chunk stay in registers (one FMA per input, the weight broadcast from
 memory) and the row is stored once per chunk.  A chunk's sums are one chain of dependent
 FMAs, so a short chunk leaves the core more chains in flight: on an Intel Cascade Lake core
-chunks of 8 ran the model's layers 1.5x faster than one 32-wide pass
+chunks of 8 ran the products (32 inputs, 32 outputs) 1.5-1.6x faster than one 32-wide pass
 (docs/evidence/speed.md#shorter-chains-for-intel-cores).
 BLAS's small-GEMM calls, which these replace, reached half the machine's rate on the
 model's widths (docs/evidence/speed.md#the-engine-against-the-flop-floor-and-the-peers).
@@ -149,7 +149,8 @@ def param_cotangent(XT, GYT, gW, gb):
 def _two_inputs(x, y, GYT, gx, gy):
     """gx[j] += x . GYT[j] and gy[j] += y . GYT[j]: a 2 x 4 block of sums per pass over the
     nodes, every load shared by two or four of them, eight independent FMA chains in flight
-    (four left an Intel core waiting on their latency: docs/evidence/speed.md#shorter-chains-for-intel-cores)."""
+    (four left an Intel core waiting on their latency: docs/evidence/speed.md#shorter-chains-for-intel-cores).
+    x may be y; gx and gy must be distinct arrays."""
     c, n = GYT.shape
     zero = GYT.dtype.type(0)
     c4 = c - c % 4
@@ -181,4 +182,3 @@ def _two_inputs(x, y, GYT, gx, gy):
             t += y[r] * GYT[j, r]
         gx[j] += s
         gy[j] += t
-
