@@ -2,12 +2,12 @@
 
 With the nodes along the contiguous axis every product vectorises over nodes, and the sum
 over the layer's inputs is unrolled at compile time: one compiled kernel per chunk width
-(8, 4, 2, 1): a width splits into 8s, then the binary digits of the rest (13 = 8 + 4 + 1).  For each output row the
-running sums of a chunk stay in registers (one FMA per input, the weight broadcast from
-memory) and the row is stored once per chunk.  A chunk's sums are one chain of dependent
-FMAs, so a short chunk leaves the core more chains in flight: on an Intel Cascade Lake core
-chunks of 8 ran the products (32 inputs, 32 outputs) 1.5-1.6x faster than one 32-wide pass
-(docs/evidence/speed.md#shorter-chains-for-intel-cores).
+(8, 4, 2, 1): a width splits into 8s, then the binary digits of the rest (13 = 8 + 4 + 1).
+For each output row the running sums of a chunk stay in registers (one FMA per input, the
+weight broadcast from memory) and the row is stored once per chunk.  A chunk's sums are one
+chain of dependent FMAs, so a short chunk leaves the core more chains in flight: on an Intel
+Cascade Lake core chunks of 8 ran the products (32 inputs, 32 outputs) 1.5-1.6x faster than
+one 32-wide pass (docs/evidence/speed.md#shorter-chains-for-intel-cores).
 BLAS's small-GEMM calls, which these replace, reached half the machine's rate on the
 model's widths (docs/evidence/speed.md#the-engine-against-the-flop-floor-and-the-peers).
 """
