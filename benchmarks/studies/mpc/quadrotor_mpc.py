@@ -16,15 +16,19 @@ controller's thrusts at the observed state: the plan may depart from a controlle
 fly only as far as the model's predicted gain pays for.  With --offset-free the learned MPC
 adds to each plan's predictions its model's last one-step error, once per step
 (ShootingMPC(offset_free=True)): the true equations' own error is that of RK4 at dt / 10.
+--anchor-torques WT charges the anchor's torque part (the departure summing to zero over a
+quadrotor's rotors) WT instead of W; --load-unseen has the true-model MPC plan without the
+load's swing, as a model of the quadrotors alone must.  --record FILE writes the flights of one
+controller as a trajectory file to learn from, --explore S adding N(0, S^2) to every thrust.
 The paths are new: start and goal drawn as the scene draws them but from other seeds, and the
 doorway moved (sideways by up to 0.4 m, up by up to 0.3 m), where the training data's doorway
 never moves.  Reported per controller: the load's tracking error (its distance to the reference
 path, mean and max over the run), the time per control step (mean, median and p95 of the wall
 time, and the mean CPU time of this process, which a shared or paused machine does not inflate)
-and the mean |F - F_scene| of the thrusts applied.  No thrust noise, nominal gains.
+and the mean |F - F_scene| of the thrusts applied.  No thrust noise unless --explore, nominal gains.
 
     python benchmarks/studies/mpc/quadrotor_mpc.py MODEL.h5 [--paths 20] [--horizon 10] [--anchor W] \
-        [--offset-free] [--out DIR]
+        [--anchor-torques WT] [--offset-free] [--load-unseen] [--record FILE [--explore S]] [--out DIR]
 """
 import argparse
 import json
@@ -35,9 +39,10 @@ import time
 import numpy as np
 
 from data_gen import quadrotor as quad
-from mpnode import Model
+from mpnode import Model, write_trajectories
 from mpnode.base.graph import Graph
 from mpnode.control import ShootingMPC, optimise_controls, tracking_cost
+from mpnode.data import Trajectories
 from true_equations import rk4_rollout
 
 N, DT, STEPS = 3, 0.1, 50
@@ -68,15 +73,30 @@ def references(ref, physics, t, horizon):
     return x, f
 
 
-def plan_cost(x_ref, f_ref, anchor=0.0, f_scene=None):
+def plan_cost(x_ref, f_ref, anchor=0.0, f_scene=None, anchor_torques=None):
     """The MPC's cost of one plan (tracking_cost): states towards x_ref (H+1, N, 13), thrusts
     towards f_ref (H, N, 4) with weight R; with anchor > 0 the first step's thrusts also towards
-    f_scene (N, 4) with weight anchor (the two quadratics of step 0 summed into one)."""
+    f_scene (N, 4) with weight anchor (the two quadratics of step 0 summed into one).  With
+    anchor_torques, the part of that departure that sums to zero over a quadrotor's four rotors
+    (its torques) is charged anchor_torques instead: a model may know what the collective thrust
+    does better than what the torques do."""
     if not anchor:
         return tracking_cost(x_ref[None], Q, R, f_ref[None])
     u_ref, r = f_ref.copy(), np.broadcast_to(R, f_ref.shape).copy()
     u_ref[0], r[0] = (R * f_ref[0] + anchor * f_scene) / (R + anchor), R + anchor
-    return tracking_cost(x_ref[None], Q, r[None], u_ref[None])
+    cost = tracking_cost(x_ref[None], Q, r[None], u_ref[None])
+    if anchor_torques is None or anchor_torques == anchor:
+        return cost
+    extra = anchor_torques - anchor
+
+    def with_torques(X, U):
+        value, gx, gu = cost(X, U)
+        d = U[:, 0] - f_scene
+        d = d - d.mean(axis=-1, keepdims=True)  # the zero-sum part: torques
+        gu[:, 0] += 2 * extra * d
+        return value + extra * float(np.sum(d * d)), gx, gu
+
+    return with_torques
 
 
 class TruePredictor:
@@ -107,21 +127,33 @@ def scene_controller(ref, physics):
     return lambda t, y: control(t, quad.unpack(y, N)[0])[0]
 
 
-def true_mpc(ref, physics, horizon, iterations, anchor):
+def load_unseen(ref, t, y):
+    """y with the load's state replaced by what the quadrotors alone suggest: where the reference
+    hangs it below its formation, moved with the quadrotors' centroid, at their mean velocity (the
+    swing the plan cannot see, as a model of the quadrotors alone cannot)."""
+    quads = quad.unpack(y, N)[0]
+    y = y.copy()
+    y[13 * N:13 * N + 3] = quads[:, 0:3].mean(axis=0) + ref.load(t)[0] - ref.quads(t)[0].mean(axis=0)
+    y[13 * N + 3:13 * N + 6] = quads[:, 7:10].mean(axis=0)
+    return y
+
+
+def true_mpc(ref, physics, horizon, iterations, anchor, anchor_torques=None, blind=False):
     predict, plan, scene = TruePredictor(physics), None, scene_controller(ref, physics)
 
     def control(t, y):
         nonlocal plan
+        y_plan = load_unseen(ref, t, y) if blind else y
         x_ref, f_ref = references(ref, physics, t, horizon)
         plan = f_ref[None] if plan is None else np.concatenate([plan[:, 1:], plan[:, -1:]], axis=1)
-        cost = plan_cost(x_ref, f_ref, anchor, scene(t, y) if anchor else None)
-        plan, _ = optimise_controls(lambda U: predict(y, U), cost, plan, (0.0, physics.F_max), iterations)
+        cost = plan_cost(x_ref, f_ref, anchor, scene(t, y) if anchor else None, anchor_torques)
+        plan, _ = optimise_controls(lambda U: predict(y_plan, U), cost, plan, (0.0, physics.F_max), iterations)
         return plan[0, 0]
 
     return control
 
 
-def learned_mpc(model, ref, physics, horizon, iterations, messages, anchor, offset_free=False):
+def learned_mpc(model, ref, physics, horizon, iterations, messages, anchor, offset_free=False, anchor_torques=None):
     mpc = ShootingMPC(model, Graph.complete(N), horizon, bounds=(0.0, physics.F_max), iterations=iterations,
                       messages=messages, offset_free=offset_free)
     started, scene = [], scene_controller(ref, physics)
@@ -132,25 +164,32 @@ def learned_mpc(model, ref, physics, horizon, iterations, messages, anchor, offs
         if not started:
             mpc.reset(x[None], f_ref[0][None])
             started.append(True)
-        return mpc.control(x[None], plan_cost(x_ref, f_ref, anchor, scene(t, y) if anchor else None))[0]
+        cost = plan_cost(x_ref, f_ref, anchor, scene(t, y) if anchor else None, anchor_torques)
+        return mpc.control(x[None], cost)[0]
 
     return control
 
 
-def closed_loop(make_controller, path):
+def closed_loop(make_controller, path, explore=None):
     """Run one path on the truth: load error (STEPS+1,), (wall, CPU) seconds per control step, the load's path, failure,
-    and the mean |F - F_scene| (N) of the thrusts applied against the scene controller's at the same states."""
+    the mean |F - F_scene| (N) of the thrusts applied against the scene controller's at the same states, and the
+    flight (the plant's states (k+1, 13 N + 6) and the thrusts applied (k, N, 4)).  With explore = (rng, S) every
+    applied thrust gets N(0, S^2) added, which the controller did not choose (data to learn from)."""
     physics = quad.Physics()
     start, goal, door = path
     ref = quad.Reference(N, start, goal, physics, {**quad.CONTROL, "doorway": tuple(door)})
     controller, scene = make_controller(ref, physics), scene_controller(ref, physics)
     x0, load0, _, _ = quad.static_equilibrium(N, start, physics)
     y = quad.pack(x0, load0)
-    loads, seconds, departures, failure = [y[13 * N:13 * N + 3]], [], [], None
+    loads, seconds, departures, failure, ys, thrusts = [y[13 * N:13 * N + 3]], [], [], None, [y], []
     for k in range(STEPS):
         t0, c0 = time.perf_counter(), time.process_time()
-        F = np.clip(controller(k * DT, y), 0.0, physics.F_max)
+        F = controller(k * DT, y)
         seconds.append((time.perf_counter() - t0, time.process_time() - c0))
+        if explore is not None:
+            F = F + explore[0].normal(0.0, explore[1], F.shape)
+        F = np.clip(F, 0.0, physics.F_max)
+        thrusts.append(F)
         departures.append(float(np.mean(np.abs(F - scene(k * DT, y)))))
         try:
             y = quad.step(physics, y, F, k * DT, DT)
@@ -158,12 +197,25 @@ def closed_loop(make_controller, path):
             failure = f"step {k}: {e}"
             break
         loads.append(y[13 * N:13 * N + 3])
+        ys.append(y)
         if np.max(quad.tilt(quad.unpack(y, N)[0][:, 3:7])) > math.radians(quad.CONTROL["fail_tilt_deg"]):
             failure = f"step {k}: tilt beyond {quad.CONTROL['fail_tilt_deg']} deg"
             break
     loads = np.array(loads)
     wanted = np.array([ref.load(k * DT)[0] for k in range(len(loads))])
-    return np.linalg.norm(loads - wanted, axis=1), seconds, loads, wanted, failure, float(np.mean(departures))
+    return (np.linalg.norm(loads - wanted, axis=1), seconds, loads, wanted, failure, float(np.mean(departures)),
+            (np.array(ys), np.array(thrusts[:len(ys) - 1])))
+
+
+def write_flights(path, flights, seeds, explore):
+    """The closed-loop flights that did not fail, as a quad3 trajectory file (states, thrusts, the load in aux/)."""
+    ys, us = np.stack([f[0] for f in flights]), np.stack([f[1] for f in flights])
+    traj = Trajectories(x=ys[:, :, :13 * N].reshape(len(ys), STEPS + 1, N, 13), u=us, graphs=[Graph.complete(N)],
+                        dt=DT, system=quad.SYSTEM, params=quad.draw_params(None, N, None), aux={"load": ys[:, :, 13 * N:]},
+                        attrs={**quad.PARAMS, "scene": "quad3", "path_seeds": np.array(seeds), "thrust_exploration": explore,
+                               "description": "closed-loop flights (benchmarks/studies/mpc/quadrotor_mpc.py --record)"})
+    write_trajectories(path, traj)
+    print(f"wrote {path}: {len(ys)} flights")
 
 
 def main():
@@ -178,22 +230,42 @@ def main():
                     help="the learned model's messages at the start of each plan (ShootingMPC)")
     ap.add_argument("--anchor", type=float, default=0.0,
                     help="weight of the first thrusts' distance to the scene controller's, both MPCs (0: none)")
+    ap.add_argument("--anchor-torques", type=float,
+                    help="the anchor's weight on the torques (the departure summing to zero over a quadrotor's "
+                         "rotors), both MPCs; default: --anchor's")
+    ap.add_argument("--load-unseen", action="store_true",
+                    help="the true-model MPC plans from the load's state as the quadrotors alone suggest it "
+                         "(no swing), as a learned model of the quadrotors must")
     ap.add_argument("--offset-free", action="store_true",
                     help="the learned MPC adds its model's last one-step error, once per step, to every plan's predictions")
+    ap.add_argument("--record", metavar="FILE",
+                    help="write the flights of the one controller given (--controllers) as a trajectory file")
+    ap.add_argument("--explore", type=float, default=0.0,
+                    help="std (N) of noise added to every applied thrust, per rotor (data to learn from)")
     ap.add_argument("--out", default=os.path.dirname(os.path.abspath(__file__)))
     a = ap.parse_args()
+    if a.record and "," in a.controllers:
+        ap.error("--record writes one controller's flights: give one with --controllers")
     model = Model.load(a.model)
     makers = {"scene": scene_controller,
-              "true": lambda ref, p: true_mpc(ref, p, a.horizon, a.iterations, a.anchor),
+              "true": lambda ref, p: true_mpc(ref, p, a.horizon, a.iterations, a.anchor, a.anchor_torques,
+                                              a.load_unseen),
               "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages, a.anchor,
-                                                     a.offset_free)}
+                                                     a.offset_free, a.anchor_torques)}
     results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations,
-               "messages": a.messages, "anchor": a.anchor, "offset_free": a.offset_free, "paths": []}
+               "messages": a.messages, "anchor": a.anchor, "anchor_torques": a.anchor_torques, "load_unseen": a.load_unseen,
+               "offset_free": a.offset_free, "explore": a.explore, "paths": []}
+    flights, seeds = [], []
     for p in range(a.paths):
         path = new_path(a.first_seed + p)
+        explore = (np.random.default_rng(np.random.SeedSequence(a.first_seed + p, spawn_key=(1,))), a.explore) \
+            if a.explore else None
         row = {"seed": a.first_seed + p, "start": path[0].tolist(), "goal": path[1].tolist(), "door": path[2].tolist()}
         for name in a.controllers.split(","):
-            err, times, loads, wanted, failure, departure = closed_loop(makers[name], path)
+            err, times, loads, wanted, failure, departure, flight = closed_loop(makers[name], path, explore)
+            if failure is None:
+                flights.append(flight)
+                seeds.append(a.first_seed + p)
             secs, cpu = np.array(times).T
             row[name] = dict(mean_error=float(err.mean()), max_error=float(err.max()), failure=failure,
                              departure=departure, ms_median=1e3 * float(np.median(secs)),
@@ -208,6 +280,8 @@ def main():
         results["paths"].append(row)
     with open(os.path.join(a.out, "quadrotor_results.json"), "w") as f:
         json.dump(results, f)
+    if a.record:
+        write_flights(a.record, flights, seeds, a.explore)
     summarise(results, a.controllers.split(","))
 
 
