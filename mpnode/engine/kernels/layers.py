@@ -16,6 +16,10 @@ from numba.extending import overload
 FASTMATH = {"contract", "reassoc", "nsz", "arcp", "afn"}
 # error_model="numpy": no ZeroDivisionError checks, which would stop the loops vectorising.
 JIT = dict(cache=True, fastmath=FASTMATH, error_model="numpy")
+# The neighbour sums without "reassoc": with it LLVM turns each CSR row's sum into masked
+# gathers and a horizontal add, several times slower than scalar sums on Intel cores for the
+# few neighbours a row has (docs/evidence/speed.md, "Neighbour sums without gathers").
+ORDERED_JIT = dict(JIT, fastmath=FASTMATH - {"reassoc"})
 
 
 def tanh(x):
@@ -196,7 +200,7 @@ def gather_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zof
         row_sum(src, col0, width, indptr, indices, i, zoff, i - zoff if self_msg else -1, out, r, ocol0, w)
 
 
-@njit(**JIT)
+@njit(**ORDERED_JIT)
 def aggregate_tile(src, col0, width, sums, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0):
     """out[r, ocol0:ocol0+width] = weight[i] * (sum over row i [and i itself] of src[j, col0:]), i = i0 + r.
 
