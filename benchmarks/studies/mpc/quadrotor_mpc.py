@@ -138,12 +138,12 @@ def load_unseen(ref, t, y):
     return y
 
 
-def true_mpc(ref, physics, horizon, iterations, anchor, anchor_torques=None, blind=False):
+def true_mpc(ref, physics, horizon, iterations, anchor, anchor_torques=None, hide_load=False):
     predict, plan, scene = TruePredictor(physics), None, scene_controller(ref, physics)
 
     def control(t, y):
         nonlocal plan
-        y_plan = load_unseen(ref, t, y) if blind else y
+        y_plan = load_unseen(ref, t, y) if hide_load else y
         x_ref, f_ref = references(ref, physics, t, horizon)
         plan = f_ref[None] if plan is None else np.concatenate([plan[:, 1:], plan[:, -1:]], axis=1)
         cost = plan_cost(x_ref, f_ref, anchor, scene(t, y) if anchor else None, anchor_torques)
@@ -209,11 +209,14 @@ def closed_loop(make_controller, path, explore=None):
 
 def write_flights(path, flights, seeds, explore):
     """The closed-loop flights that did not fail, as a quad3 trajectory file (states, thrusts, the load in aux/)."""
+    if not flights:
+        raise SystemExit(f"{path} not written: every flight failed")
     ys, us = np.stack([f[0] for f in flights]), np.stack([f[1] for f in flights])
+    attrs = {**quad.PARAMS, "scene": "quad3", "path_seeds": np.array(seeds), "thrust_exploration": explore,
+             "description": "closed-loop flights (benchmarks/studies/mpc/quadrotor_mpc.py --record)"}
     traj = Trajectories(x=ys[:, :, :13 * N].reshape(len(ys), STEPS + 1, N, 13), u=us, graphs=[Graph.complete(N)],
-                        dt=DT, system=quad.SYSTEM, params=quad.draw_params(None, N, None), aux={"load": ys[:, :, 13 * N:]},
-                        attrs={**quad.PARAMS, "scene": "quad3", "path_seeds": np.array(seeds), "thrust_exploration": explore,
-                               "description": "closed-loop flights (benchmarks/studies/mpc/quadrotor_mpc.py --record)"})
+                        dt=DT, system=quad.SYSTEM, params=quad.draw_params(None, N, None),
+                        aux={"load": ys[:, :, 13 * N:]}, attrs=attrs)
     write_trajectories(path, traj)
     print(f"wrote {path}: {len(ys)} flights")
 
@@ -253,8 +256,8 @@ def main():
               "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages, a.anchor,
                                                      a.offset_free, a.anchor_torques)}
     results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations,
-               "messages": a.messages, "anchor": a.anchor, "anchor_torques": a.anchor_torques, "load_unseen": a.load_unseen,
-               "offset_free": a.offset_free, "explore": a.explore, "paths": []}
+               "messages": a.messages, "anchor": a.anchor, "anchor_torques": a.anchor_torques,
+               "load_unseen": a.load_unseen, "offset_free": a.offset_free, "explore": a.explore, "paths": []}
     flights, seeds = [], []
     for p in range(a.paths):
         path = new_path(a.first_seed + p)
