@@ -261,10 +261,10 @@ def main():
     flights, seeds = [], []
     for p in range(a.paths):
         path = new_path(a.first_seed + p)
-        explore = (np.random.default_rng(np.random.SeedSequence(a.first_seed + p, spawn_key=(1,))), a.explore) \
-            if a.explore else None
         row = {"seed": a.first_seed + p, "start": path[0].tolist(), "goal": path[1].tolist(), "door": path[2].tolist()}
-        for name in a.controllers.split(","):
+        for name in a.controllers.split(","):  # every controller of a path meets the same thrust noise
+            explore = (np.random.default_rng(np.random.SeedSequence(a.first_seed + p, spawn_key=(1,))), a.explore) \
+                if a.explore else None
             err, times, loads, wanted, failure, departure, flight = closed_loop(makers[name], path, explore)
             if failure is None:
                 flights.append(flight)

@@ -11,6 +11,7 @@ import argparse
 
 import numpy as np
 
+from data_gen import quadrotor as quad
 from mpnode import read_trajectories
 
 SUBSTEPS = 10
@@ -18,10 +19,9 @@ SUBSTEPS = 10
 
 def quaternion_rate(q, w):
     """q' = q (x) (0, w) / 2 for quaternions [w, x, y, z] (..., 4) and body rates (..., 3)."""
-    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
     wx, wy, wz = np.moveaxis(w, -1, 0)
-    return 0.5 * np.stack([-qx * wx - qy * wy - qz * wz, qw * wx + qy * wz - qz * wy,
-                           qw * wy - qx * wz + qz * wx, qw * wz + qx * wy - qy * wx], axis=-1)
+    product = quad.quat_mul(np.moveaxis(q, -1, 0), (np.zeros_like(wx), wx, wy, wz))
+    return 0.5 * np.moveaxis(product, 0, -1)
 
 
 def rate_at(rates, k, a):
