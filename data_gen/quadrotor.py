@@ -24,15 +24,18 @@ import math
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from mpnode.base.errors import InputError, NumericalError
+from mpnode.data import Trajectories
+from mpnode.engine.codegen import build_numba_codegen
+from mpnode.runs.executors import chunk_ranges, map_chunks, open_executor
+
 try:
     from numba import njit
 except ImportError:  # without numba the RHS runs as plain Python (same results, far slower), so that
     def njit(**_):   # importing the scenes -- which `mpnode eval` does -- still works (the NumPy path)
         return lambda f: f
-
-from mpnode.base.errors import InputError, NumericalError
-from mpnode.data import Trajectories
-from mpnode.runs.executors import chunk_ranges, map_chunks, open_executor
+else:
+    build_numba_codegen()  # before the declarations below: the vector width numba compiles for
 
 SYSTEM = "quadrotor_load"
 STATE_DIM = 13

@@ -3,6 +3,10 @@ training needs it anyway, and `import mpnode` stays free of it)."""
 import numpy as np
 from numba import njit
 
+from mpnode.engine.codegen import build_numba_codegen
+
+build_numba_codegen()  # before the declaration below: the vector width it compiles for
+
 
 @njit(cache=True, error_model="numpy")
 def residual_pass(pred, x, is_huber, g, scale):

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numba
 
+from ..codegen import build_numba_codegen
+
 
 def _cache_dir():
     """<NUMBA_CACHE_DIR or this package's __pycache__>/mpnode-kernels-<digest of the sources>."""
@@ -28,6 +30,7 @@ def _cache_dir():
     return os.path.join(base, "mpnode-kernels-" + digest.hexdigest()[:16])
 
 
+build_numba_codegen()  # before the first declaration: the vector width it compiles for
 _user_cache_dir = numba.config.CACHE_DIR
 numba.config.CACHE_DIR = _cache_dir()  # read when each function below is decorated
 try:
