@@ -36,7 +36,7 @@ import scipy.linalg
 
 from mpnode.base.graph import Graph
 from mpnode.data import Trajectories, write_trajectories
-from mpnode.engine import kernels, rollout
+from mpnode.engine import rollout
 from mpnode.model import Model
 from mpnode.training import batches
 
@@ -110,6 +110,11 @@ _warm_up = _KernelWarmUp()
 
 
 def pytest_configure(config):
+    # the kernels compiled as the `mpnode` command compiles them (mpnode.engine.codegen), so that the
+    # suite, its warm-up and the commands it starts share one set of compiled code
+    os.environ.setdefault("MPNODE_WIDE_VECTORS", "1")
+    from mpnode.engine import kernels
+
     for name in DRIVER_ENTRY_POINTS:
         setattr(kernels, name, _warm_up.wrap(getattr(kernels, name)))
 
@@ -133,6 +138,8 @@ def _spy(fn, name, calls):
 @pytest.fixture
 def driver_calls(monkeypatch):
     """The names of the kernel drivers the test called, in order (a spy on each entry point)."""
+    from mpnode.engine import kernels
+
     calls = []
     for name in DRIVER_ENTRY_POINTS:
         monkeypatch.setattr(kernels, name, _spy(getattr(kernels, name), name, calls))
