@@ -283,6 +283,7 @@ def print_row(r):
 
 
 def main():
+    os.environ.setdefault("MPNODE_WIDE_VECTORS", "1")  # as the `mpnode` command runs the kernels (0: numba's default)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", default="S1,S2,S3,S4,S5", help=f"comma-separated subset of {', '.join(CASES)}")
     ap.add_argument("--kinds", default="mpnode,l2s", help="comma-separated model kinds: mpnode, l2s")

@@ -20,8 +20,6 @@ import sys
 import tempfile
 import time
 
-from mpnode.engine import kernels
-
 SYSTEMS = {"coupled_pendulum": {}, "lorenz3": {"self_messages": True}, "gene16_ba_multi": {},
            "kuramoto10_ba": {"message_dim": 7}}
 ENTRY_POINTS = ("rollout_blocks", "rollout_stagewise", "vjp_blocks", "vjp_stagewise")
@@ -31,6 +29,8 @@ class EngineClock:
     """Wraps the kernels' entry points and adds up the time spent inside them."""
 
     def __init__(self):
+        from mpnode.engine import kernels
+
         self.seconds = 0.0
         for name in ENTRY_POINTS:
             setattr(kernels, name, self._timed(getattr(kernels, name)))
@@ -73,6 +73,7 @@ def measure(scene, options, epochs, folder):
 
 
 def main():
+    os.environ.setdefault("MPNODE_WIDE_VECTORS", "1")  # as the `mpnode` command runs the kernels (0: numba's default)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--epochs", type=int, default=6)
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "mpnode-bench-data"))
