@@ -37,6 +37,7 @@ import numpy as np
 
 from mpnode.base.graph import Graph, block_diagonal
 from mpnode.engine import FieldSpec, forward, rollout
+from mpnode.engine.codegen import ask_for_wide_vectors
 from mpnode.engine.layouts import glorot_init
 from mpnode.training.losses import value_and_grad
 
@@ -283,7 +284,7 @@ def print_row(r):
 
 
 def main():
-    os.environ.setdefault("MPNODE_WIDE_VECTORS", "1")  # as the `mpnode` command runs the kernels (0: numba's default)
+    ask_for_wide_vectors()  # as the `mpnode` command compiles the kernels (MPNODE_WIDE_VECTORS=0: numba's default)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", default="S1,S2,S3,S4,S5", help=f"comma-separated subset of {', '.join(CASES)}")
     ap.add_argument("--kinds", default="mpnode,l2s", help="comma-separated model kinds: mpnode, l2s")

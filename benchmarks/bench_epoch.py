@@ -20,6 +20,8 @@ import sys
 import tempfile
 import time
 
+from mpnode.engine.codegen import ask_for_wide_vectors
+
 SYSTEMS = {"coupled_pendulum": {}, "lorenz3": {"self_messages": True}, "gene16_ba_multi": {},
            "kuramoto10_ba": {"message_dim": 7}}
 ENTRY_POINTS = ("rollout_blocks", "rollout_stagewise", "vjp_blocks", "vjp_stagewise")
@@ -48,7 +50,7 @@ class EngineClock:
 def data_file(folder, scene):
     path = os.path.join(folder, f"{scene}.h5")
     if not os.path.exists(path):
-        subprocess.run([sys.executable, "-m", "cli.main", "generate", scene, "-o", path,
+        subprocess.run([sys.executable, "-c", "from cli.main import main; main()", "generate", scene, "-o", path,
                         "--trajectories", "1000"], check=True)
     return path
 
@@ -73,7 +75,7 @@ def measure(scene, options, epochs, folder):
 
 
 def main():
-    os.environ.setdefault("MPNODE_WIDE_VECTORS", "1")  # as the `mpnode` command runs the kernels (0: numba's default)
+    ask_for_wide_vectors()  # as the `mpnode` command compiles the kernels (MPNODE_WIDE_VECTORS=0: numba's default)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--epochs", type=int, default=6)
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "mpnode-bench-data"))

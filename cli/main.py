@@ -6,7 +6,6 @@ on stderr, never a traceback, with its exit status (EXIT_STATUS): bad input anyw
 system refusing (an OSError: a full disk, a read-only folder, a missing permission, a file in
 use; memory running out; a library that cannot be imported) 4.
 """
-import os
 import sys
 
 import click
@@ -72,9 +71,9 @@ def main():
     One small neural ODE learns a single subsystem; every node of a graph runs it
     and nodes coordinate through learned messages (MP-NODE).
     """
-    # the command's process is mpnode's own: its kernels (and its workers') may use the CPU's
-    # full vector width (mpnode.engine.codegen); an explicit MPNODE_WIDE_VECTORS=0 keeps numba's default
-    os.environ.setdefault("MPNODE_WIDE_VECTORS", "1")
+    from mpnode.engine.codegen import ask_for_wide_vectors
+
+    ask_for_wide_vectors()  # the command's process is mpnode's own (mpnode.engine.codegen)
 
 
 def scheduler_option(f):

@@ -37,6 +37,7 @@ import scipy.linalg
 from mpnode.base.graph import Graph
 from mpnode.data import Trajectories, write_trajectories
 from mpnode.engine import rollout
+from mpnode.engine.codegen import ask_for_wide_vectors
 from mpnode.model import Model
 from mpnode.training import batches
 
@@ -112,7 +113,7 @@ _warm_up = _KernelWarmUp()
 def pytest_configure(config):
     # the kernels compiled as the `mpnode` command compiles them (mpnode.engine.codegen), so that the
     # suite, its warm-up and the commands it starts share one set of compiled code
-    os.environ.setdefault("MPNODE_WIDE_VECTORS", "1")
+    ask_for_wide_vectors()
     from mpnode.engine import kernels
 
     for name in DRIVER_ENTRY_POINTS:
