@@ -6,6 +6,7 @@ numba builds one generator per process, when the process declares its first numb
 so the width holds for every function compiled in it, a host program's too: only mpnode's own
 processes ask for it (`ask_for_wide_vectors`), and a host program opts in the same way.
 """
+import functools
 import os
 
 VARIABLE = "MPNODE_WIDE_VECTORS"
@@ -17,23 +18,24 @@ def ask_for_wide_vectors():
     os.environ.setdefault(VARIABLE, "1")
 
 
+@functools.cache
 def build_numba_codegen():
     """Build numba's code generator, unless something in the process built it before: for the
     CPU's full vector width where MPNODE_WIDE_VECTORS=1.  NUMBA_CPU_FEATURES, if set, wins;
     numba's configuration is left as it was.  Every module of mpnode that declares compiled
-    functions calls this before it does."""
+    functions calls this before it does; the first call does the work."""
     import numba
     from numba.core.registry import cpu_target
 
     user = numba.config.CPU_FEATURES
-    numba.config.CPU_FEATURES = wide_vector_features() or user
+    numba.config.CPU_FEATURES = _wide_vector_features() or user
     try:
         cpu_target.target_context  # noqa: B018  (built on first access, with numba.config's features)
     finally:
         numba.config.CPU_FEATURES = user
 
 
-def wide_vector_features():
+def _wide_vector_features():
     """numba's view of the host's CPU features (NUMBA_ENABLE_AVX=0 masks AVX) with LLVM's
     256-bit preference lifted, or None: not asked for, no AVX-512, or the user chose the features."""
     import numba
