@@ -19,11 +19,9 @@ import json
 import numpy as np
 
 from mpnode.data import read_trajectories
-from mpnode.evaluation.evaluate import evaluate
-from mpnode.evaluation.metrics import variance
-from mpnode.evaluation.spread import spearman
+from mpnode.evaluation.evaluate import evaluate, start_states
+from mpnode.evaluation.spread import spearman, spread_figures
 from mpnode.model import Model, ranges
-from mpnode.model.ensemble import BAND_Z
 
 
 def excess_along(model, x0, traj, u, only=None):
@@ -56,26 +54,21 @@ def main():
     a = ap.parse_args()
     model, traj = Model.load(a.ensemble), read_trajectories(a.test)
     res = evaluate(model, traj, source=a.test, check_stability=False)
-    x = np.asarray(traj.x, dtype=np.float64)
     u = None if traj.u is None else np.nan_to_num(np.asarray(traj.u))
-    x0 = model.initial_state(x[:, :1])
-    var = variance(x)
-    truth, mean = x[:, 1:], res.predictions[:, 1:]
-    err = np.nanmean((mean - truth) ** 2 / var, axis=(1, 2, 3))
+    x0 = start_states(model, traj, 0)  # where evaluate's rollouts started
+    err = np.asarray(res.ensemble["nmse_per_trajectory"], dtype=np.float64)
     excess = excess_along(model, x0, traj, u)
-    out = {"ensemble": a.ensemble, "test": a.test, "nmse": float(np.nanmean(err)),
+    out = {"ensemble": a.ensemble, "test": a.test, "nmse": res.nmse,
            "excess_at_end": {"median": float(np.median(excess[:, -1])), "max": float(excess.max())},
-           "spearman_excess_error": {q or "all": spearman(excess_along(model, x0, traj, u, q)[:, -1], err)
-                                     for q in (None, "state", "aggregate", "linear_aggregate")},
+           "spearman_excess_error": {"all": spearman(excess[:, -1], err),
+                                     **{q: spearman(excess_along(model, x0, traj, u, q)[:, -1], err)
+                                        for q in ("state", "aggregate", "linear_aggregate")}},
            "widened": []}
+    clean = np.asarray(traj.x if traj.truth is None else traj.truth, dtype=np.float64)
     for c in (float(v) for v in a.widths.split(",")):
-        spread = res.spread[:, 1:] * (1 + c * excess[:, 1:, None, None])
-        z = np.abs(mean - truth) / spread
-        expected = np.nanmean(spread ** 2 / var, axis=(1, 2, 3))
-        out["widened"].append({"c": c, "spread_error_spearman": spearman(expected, err),
-                               "spread_nmse": float(np.mean(expected)),
-                               "coverage_50": float(np.mean(z <= BAND_Z[50])),
-                               "coverage_90": float(np.mean(z <= BAND_Z[90]))})
+        figures = spread_figures(res.predictions, res.spread * (1 + c * excess[:, :, None, None]), res.scored, clean)
+        out["widened"].append({"c": c, **{k: figures[k] for k in ("spread_error_spearman", "spread_nmse",
+                                                                   "coverage_50", "coverage_90")}})
     print(json.dumps(out, indent=1, default=str).replace("NaN", "null"))
 
 
