@@ -15,6 +15,7 @@ evaluation, so small graphs pay NumPy's per-call overhead (benchmarks/bench_simu
 import numpy as np
 
 from . import layouts
+from .kinematics import derivatives_of
 from .schedule import time_grid
 from .spec import checked_controls, rule_weights
 
@@ -55,6 +56,16 @@ def empty_rows(spec, graph):
 
 def make_field(spec, theta, graph):
     """The model's time derivative as a function (z (M, dz), u (M, du)) -> dz/dt (M, dz)."""
+    field = _network_field(spec, theta, graph)
+    if spec.kinematics is None:
+        return field
+    dx = spec.state_dim
+    fixed = spec.kinematics.matrices(dx, spec.state_width, theta.dtype)
+    return lambda z, u: derivatives_of(fixed, z[:, :dx], field(z, u))
+
+
+def _network_field(spec, theta, graph):
+    """The network's time derivative, every dimension learned."""
     p = layouts.split(theta, layouts.param_shapes(spec))
     dx = spec.state_dim
     if spec.kind == "node":

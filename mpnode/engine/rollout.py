@@ -43,7 +43,9 @@ def _whole_systems(spec, x0, u, graph):
         raise ValueError(f"graph has {graph.n_nodes} nodes but the states have {m}")
     if m % n:
         raise ValueError(f"{m} nodes are not whole systems of {n} nodes (a node model's n_nodes)")
-    inner = replace(spec, kind="mpnode", state_dim=n * dx, control_dim=n * spec.control_dim, n_nodes=None)
+    kin = None if spec.kinematics is None else spec.kinematics.for_systems(n, dx)
+    inner = replace(spec, kind="mpnode", state_dim=n * dx, control_dim=n * spec.control_dim, n_nodes=None,
+                    kinematics=kin)
     u = None if u is None else np.asarray(u).reshape(u.shape[0], m // n, n * spec.control_dim)
     return inner, np.asarray(x0).reshape(m // n, n * dx), u, _edgeless(m // n)
 
@@ -54,6 +56,14 @@ def _per_system(spec, intervals):
         return None
     iv = np.asarray(intervals)
     return iv.reshape(iv.shape[0], -1, spec.n_nodes)[:, :, 0]
+
+
+def _kernel_theta(spec, theta):
+    """The parameters as the kernels read them: followed by the kinematics' constants, if any."""
+    theta = np.ascontiguousarray(theta)
+    if spec.kinematics is None:
+        return theta
+    return np.concatenate([theta, spec.kinematics.constants(theta.dtype)])
 
 
 @functools.lru_cache(maxsize=16)
@@ -67,7 +77,7 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
     the time grid and the plan as the kernels saw them)."""
     from . import kernels
 
-    theta = np.ascontiguousarray(theta)
+    theta = _kernel_theta(spec, theta)
     z0 = np.ascontiguousarray(z0, dtype=theta.dtype)
     m = z0.shape[0]
     if z0.shape != (m, spec.state_width):
@@ -241,6 +251,8 @@ def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False):
     gu (T, M, du) or None) in the user's node order."""
     from . import kernels
 
+    n_params = theta.size
+    theta = _kernel_theta(spec, theta)
     n_steps, m = u.shape[0], states.shape[1]
     gx = np.asarray(gx, dtype=theta.dtype).reshape(-1, m, spec.state_dim)
     gx = np.ascontiguousarray(plan.to_kernel_order(gx, axis=1))
@@ -259,6 +271,5 @@ def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False):
                                plan.dense_A, plan.dense_AT, nsub, hstep, states, kept, gx, gthetas, gx0, gu)
     if plan.order is not None:
         gx0[plan.order] = gx0.copy()
-    if not controls:
-        return gthetas.sum(axis=0, dtype=theta.dtype), gx0, None
-    return gthetas.sum(axis=0, dtype=theta.dtype), gx0, plan.to_user_order(gu)
+    gtheta = gthetas.sum(axis=0, dtype=theta.dtype)[:n_params]
+    return gtheta, gx0, plan.to_user_order(gu) if controls else None

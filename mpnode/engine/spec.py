@@ -7,6 +7,7 @@ import numpy as np
 from mpnode.base.errors import InputError
 
 from . import dims as slots
+from .kinematics import Kinematics
 
 #: the model kinds the engine integrates (docs/model-format.md)
 KINDS = ("mpnode", "l2s", "node")
@@ -144,6 +145,8 @@ class FieldSpec:
     encoder_window : W > 0 when the model estimates a trajectory's initial state from its first W
         observations (mpnode.model.encoder; its weights follow the field's, the kernels never
         read them), 0 when a rollout starts from the state it is given
+    kinematics : the derivatives the physics fixes (mpnode.engine.kinematics.Kinematics; a
+        node's for kind "node"), or None: the network gives every derivative
     """
 
     kind: str = "mpnode"
@@ -158,6 +161,7 @@ class FieldSpec:
     aggregation: Aggregation = None
     n_nodes: int = None
     encoder_window: int = 0
+    kinematics: Kinematics = None
 
     def __post_init__(self):
         _one_of(self.kind, KINDS, "kind")
@@ -180,6 +184,12 @@ class FieldSpec:
                              f"{self.message_dim}{' and zero_messages' if self.zero_messages else ''}",
                              "an mpnode model with messages (message_dim > 0, no zero_messages)")
 
+        if self.kinematics is not None:
+            if self.kind == "l2s":
+                raise InputError("model", "kinematics", "is set for an l2s model",
+                                 "an mpnode or node model (the l2s field has no kinematics)")
+            self.kinematics.check(self.state_dim)
+
     def attrs(self):
         """The spec as the plain attributes of a model file (docs/model-format.md)."""
         out = {"kind": self.kind, "state_dim": self.state_dim, "control_dim": self.control_dim,
@@ -190,6 +200,8 @@ class FieldSpec:
             out["n_nodes"] = self.n_nodes
         if self.encoder_window:
             out["encoder_window"] = self.encoder_window
+        if self.kinematics is not None:
+            out["kinematics"] = self.kinematics.text()
         return out
 
     @classmethod
@@ -204,7 +216,7 @@ class FieldSpec:
                    substeps=int(a["substeps"]), self_messages=bool(a.get("self_messages", 0)),
                    zero_messages=bool(a.get("zero_messages", 0)), aggregation=aggregation,
                    n_nodes=None if a.get("n_nodes") is None else int(a["n_nodes"]),
-                   encoder_window=int(a.get("encoder_window", 0)))
+                   encoder_window=int(a.get("encoder_window", 0)), kinematics=Kinematics.parse(a.get("kinematics")))
 
     @property
     def dims(self):
@@ -215,6 +227,7 @@ class FieldSpec:
                                                                   self.message_dim, self.hidden)
         d[slots.SELF_MSG], d[slots.ZERO_MSG] = int(self.self_messages), int(self.zero_messages)
         d[slots.LINEAR] = self.aggregation.kernel_flags()
+        d[slots.KINEMATICS] = 0 if self.kinematics is None else self.kinematics.width()
         return tuple(d)
 
     @property

@@ -36,8 +36,8 @@ either).  ``dims``: the model's integers (slots in mpnode.engine.dims); ``graph`
 import numpy as np
 from numba import njit, prange
 
-from ..dims import DM, DU, DX, HIDDEN, KIND, L2S, SELF_MSG, ZERO_MSG
-from . import l2s_field, mpnode_field
+from ..dims import DM, DU, DX, HIDDEN, KINEMATICS, KIND, L2S, SELF_MSG, ZERO_MSG
+from . import kinematics, l2s_field, mpnode_field
 from .feature_major import aligned_empty, dense_sum
 from .layers import JIT, transpose_tile
 
@@ -145,8 +145,11 @@ def update_tile(theta, dims, zin, u, S, sums, graph, i0, i1, zoff, C, slot, r0, 
     if dims[KIND] == L2S:
         return l2s_field.update_tile(theta, dims, S, sums, graph, i0, i1, zoff, C[1][slot, r0:r1],
                                      C[3][slot, r0:r1], C[4][slot, r0:r1])
-    return mpnode_field.update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, C[0][slot, r0:r1],
-                                    C[1][slot, r0:r1], C[2][slot, r0:r1], msrc, mcol0).T
+    KT = mpnode_field.update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, C[0][slot, r0:r1],
+                                  C[1][slot, r0:r1], C[2][slot, r0:r1], msrc, mcol0)
+    if dims[KINEMATICS]:
+        kinematics.apply(theta, dims, mpnode_field.feature_major(C[0][slot, r0:r1]), KT)
+    return KT.T
 
 
 @njit(**JIT)
@@ -214,8 +217,11 @@ def update_vjp_tile(stage, h, theta, dims, a, gnext, graph, i0, i1, zoff, C, slo
         l2s_field.update_vjp_tile(theta, dims, GK, graph, i0, i1, zoff, C[1][slot, r0:r1], C[3][slot, r0:r1],
                                   C[4][slot, r0:r1], gtheta, gagg, gh0)
     else:
+        G = kinematics.take(theta, dims, GK) if dims[KINEMATICS] else GK[:0]
         mpnode_field.update_vjp_tile(theta, dims, GK, graph[2], i0, i1, zoff, C[0][slot, r0:r1],
                                      C[1][slot, r0:r1], C[2][slot, r0:r1], gtheta, gin, gagg, gu)
+        if dims[KINEMATICS]:  # after the field's VJP, which writes gin's x columns
+            kinematics.vjp(theta, dims, mpnode_field.feature_major(C[0][slot, r0:r1]), G, gin, i0, zoff)
 
 
 @njit(**JIT)
@@ -420,8 +426,11 @@ def rollout_stagewise(theta, dims, z0, U, graph, nsub, hstep, out, states, zend)
                     if kind == L2S:
                         K = l2s_field.update_tile(theta, dims, S, none, graph, i0, i1, 0, H0[i0:i1], C[3][0], C[4][0])
                     else:
-                        K = mpnode_field.update_tile(theta, dims, zin, U[t], none, graph, i0, i1, 0, C[0][0],
-                                                     C[1][0], C[2][0], msg, 0).T
+                        KT = mpnode_field.update_tile(theta, dims, zin, U[t], none, graph, i0, i1, 0, C[0][0],
+                                                      C[1][0], C[2][0], msg, 0)
+                        if dims[KINEMATICS]:
+                            kinematics.apply(theta, dims, mpnode_field.feature_major(C[0][0]), KT)
+                        K = KT.T
                     fold_tile(stage, h, K, z, zout, acc, i0, i1, 0)
                     if kind != L2S:  # the next stage's messages: zout's (stage 3: the new z's)
                         copy_messages(z if stage == 3 else zout, dx, mnext, i0, i1)
