@@ -52,7 +52,8 @@ def _model_text(file, s):
              f"messages:    {agg}" + (", self-messages" if s["self_messages"] else "")
              + (", clamped to zero" if s["zero_messages"] else "")
              + (linear + ")" if s["linear_aggregate"] else ""),
-             f"integration: RK4, dt={s['dt']:g}, {s['substeps']} substep(s) per dt",
+             f"integration: RK4, dt={s['dt']:g}, {s['substeps']} substep(s) per dt"
+             + (f"; kinematics {s['kinematics']} (fixed, not learned)" if s["kinematics"] else ""),
              "arrays:      " + ", ".join(f"{k} {v}" for k, v in s["arrays"].items())
              + (" per member" if "ensemble" in s else ""),
              *_ensemble_text(s.get("ensemble")),

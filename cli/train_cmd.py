@@ -317,6 +317,12 @@ def print_validation(result):
 @click.option("--latent-dims", type=click.IntRange(min=0), metavar="K",
               help="Give each node K more state dimensions than the data have, never observed: room for what "
                    "the data do not show (the initial-state encoder estimates where they start).")
+@click.option("--kinematics", metavar="TERMS",
+              help="State derivatives the physics fixes, computed exactly instead of learned, so the network "
+                   "learns only the rest: terms D:S (x_D' = x_S: a position and its velocity) or qD:S (the unit "
+                   "quaternion x_D..x_D+3, [w, x, y, z], turned by the body rates x_S..x_S+2), separated by "
+                   "commas, e.g. 0:7,1:8,2:9,q3:10 (the quadrotor); none: every derivative learned (mpnode and "
+                   "node models).  Default: the recipe's.")
 @recipe_option("the MP-NODE paper's: mean aggregation, plateau schedule, batch 128")
 @click.option("--trajectories", type=click.IntRange(min=2),
               help=f"Only when DATA is a scene: trajectories to generate (default {SCENE_TRAJECTORIES}; a scene set: "

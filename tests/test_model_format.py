@@ -31,7 +31,9 @@ def rollout_from_file(path, traj):
                            message_dim=int(a["message_dim"]), hidden=int(a["hidden"]), dt=float(a["dt"]),
                            substeps=int(a["substeps"]), zero_messages=bool(a["zero_messages"]),
                            self_messages=bool(a["self_messages"]), aggregation=aggregation, n_nodes=a.get("n_nodes"),
-                           linear_path=bool(a.get("linear_aggregate", 0)), encoder_window=0)
+                           linear_path=bool(a.get("linear_aggregate", 0)), encoder_window=0,
+                           kinematics=None)
+    assert "kinematics" not in a  # (these tests' models have none: test_kinematics covers them)
     B, T1, N, dx = traj.x.shape
     out = np.empty((B, T1, N, dx))
     for b in range(B):

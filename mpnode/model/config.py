@@ -14,6 +14,7 @@ import numpy as np
 from mpnode.base.arguments import check_bool, check_int, check_mapping, check_number
 from mpnode.base.errors import InputError
 from mpnode.base.options import defaults, option, option_names
+from mpnode.engine.kinematics import Kinematics
 from mpnode.engine.spec import AGGREGATIONS, KINDS, LINEAR_TARGETS, Aggregation, FieldSpec, default_aggregation
 
 DTYPES = ("float32", "float64")
@@ -37,6 +38,8 @@ class ModelConfig:
         from the first observation as it is
     latent_dims : K more state dimensions per node beyond the data's, never observed: room for
         what the data do not show (the encoder estimates their start)
+    kinematics : the state derivatives the physics fixes, as text (mpnode.engine.kinematics:
+        e.g. "0:7,1:8,2:9,q3:10"), computed exactly instead of learned; "none" (or None): all learned
     """
 
     kind: str = option("mpnode", aliases=("model",))
@@ -52,6 +55,7 @@ class ModelConfig:
     dtype: str = "float32"
     encoder_window: int = 0
     latent_dims: int = 0
+    kinematics: str = None
 
     def __post_init__(self):
         _check_choice("kind", self.kind, KINDS)
@@ -69,8 +73,12 @@ class ModelConfig:
             dtype = None
         _check_choice("dtype", dtype, DTYPES)
         object.__setattr__(self, "dtype", dtype)
-        self.spec(1, 0, 1.0, n_nodes=1 if self.kind == "node" else None,
-                  mean_degree=1.0 if self.uses_mean_degree else None)  # the rules between options
+        kinematics = Kinematics.parse(self.kinematics, "model options")
+        object.__setattr__(self, "kinematics", None if kinematics is None else kinematics.text())
+        # the rules between options; the terms' indices are checked once the data give dx
+        self._spec(1, 0, 1.0, n_nodes=1 if self.kind == "node" else None,
+                   mean_degree=1.0 if self.uses_mean_degree else None,
+                   kinematics=None if kinematics is None else Kinematics())
 
     @property
     def messages(self):
@@ -85,6 +93,9 @@ class ModelConfig:
     def spec(self, state_dim, control_dim, dt, n_nodes=None, mean_degree=None):
         """The engine's FieldSpec of a model of these options for data with ``state_dim``,
         ``control_dim`` and ``dt`` (a node model: ``n_nodes``; "scaled": ``mean_degree``)."""
+        return self._spec(state_dim, control_dim, dt, n_nodes, mean_degree, Kinematics.parse(self.kinematics))
+
+    def _spec(self, state_dim, control_dim, dt, n_nodes=None, mean_degree=None, kinematics=None):
         state_dim, control_dim = check_int(state_dim, "model", "state_dim", 1), check_int(control_dim, "model",
                                                                                            "control_dim", 0)
         dt = check_number(dt, "model", "dt", positive=True)
@@ -98,7 +109,7 @@ class ModelConfig:
                          message_dim=self.message_dim if mpnode else 0, hidden=self.hidden, dt=dt,
                          substeps=self.substeps, self_messages=self.self_messages,
                          zero_messages=self.zero_messages and mpnode, aggregation=aggregation, n_nodes=n_nodes,
-                         encoder_window=self.encoder_window)
+                         encoder_window=self.encoder_window, kinematics=kinematics)
 
 
 def configured(options=None, base=None):

@@ -1,5 +1,5 @@
 """Model files (docs/model-format.md, version 2; 3 for a model with the linear aggregate path;
-4 with an initial-state encoder; 5 for an ensemble; version 1 still reads): validated reader,
+4 with an initial-state encoder; 5 for an ensemble; 6 with kinematics; version 1 still reads): validated reader,
 atomic writer.
 
 The reader returns what the file holds (spec, flat parameters, normalisation, extra
@@ -23,7 +23,9 @@ ENCODER_VERSION = 4
 #: written only for an ensemble (K members' parameters stacked, their calibrated spread), so that
 #: an older reader refuses it instead of misreading the stacked arrays
 ENSEMBLE_VERSION = 5
-VERSIONS = (1, FORMAT_VERSION, LINEAR_PATH_VERSION, ENCODER_VERSION, ENSEMBLE_VERSION)
+#: written only for a model (or an ensemble) with kinematics, which an older reader would drop
+KINEMATICS_VERSION = 6
+VERSIONS = (1, FORMAT_VERSION, LINEAR_PATH_VERSION, ENCODER_VERSION, ENSEMBLE_VERSION, KINEMATICS_VERSION)
 #: the datasets under ensemble/ of an ensemble file: the spread's scale (dx,), then per member (K,)
 ENSEMBLE_ARRAYS = ("spread_scale", "member_seed", "member_epoch", "member_val_loss")
 #: the optional group of what the model saw in training (mpnode.model.ranges), and its key in attrs;
@@ -34,6 +36,8 @@ SEEN, SEEN_ATTR = "seen", "seen_ranges"
 def version_of(spec, ensemble=False):
     """The oldest format version that holds ``spec`` (of an ensemble's members when ``ensemble``):
     an older reader then refuses what it would misread."""
+    if spec.kinematics is not None:
+        return KINEMATICS_VERSION
     if ensemble:
         return ENSEMBLE_VERSION
     if spec.encoder_window:
@@ -69,6 +73,7 @@ _TYPES = {
     "linear_target": (lambda v: isinstance(v, str) and v in LINEAR_TARGETS,
                       " or ".join(LINEAR_TARGETS) + " (what the linear aggregate path adds to)"),
     "encoder_window": (lambda v: _is_int(v) and v >= 1, "an integer >= 1 (the initial-state encoder's observations)"),
+    "kinematics": (lambda v: isinstance(v, str), "text: terms D:S or qD:S separated by commas (model-format.md)"),
 }
 _SPEC_ATTRS = set(_TYPES) | {"format", "format_version", "activation", "integrator", "kind", "aggregation",
                              "ensemble_size"}
@@ -115,8 +120,10 @@ class _Attrs:
             raise InputError(self.path, e.field, e.problem, e.expected) from None
         if (version > 1 or "ensemble_size" in self.a) and version != version_of(spec, "ensemble_size" in self.a):
             raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(spec.linear_path)}, "
-                             f"encoder_window {spec.encoder_window} and ensemble_size {self.a.get('ensemble_size')}",
-                             f"{ENSEMBLE_VERSION} exactly for an ensemble (ensemble_size), else {ENCODER_VERSION} "
+                             f"encoder_window {spec.encoder_window}, ensemble_size {self.a.get('ensemble_size')} "
+                             f"and kinematics {self.a.get('kinematics')!r}",
+                             f"{KINEMATICS_VERSION} exactly for a model with kinematics, else {ENSEMBLE_VERSION} "
+                             f"exactly for an ensemble (ensemble_size), else {ENCODER_VERSION} "
                              f"exactly when the model has an initial-state encoder, else {LINEAR_PATH_VERSION} "
                              f"exactly when it has the linear aggregate path, else {FORMAT_VERSION}")
         return spec

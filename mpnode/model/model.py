@@ -43,7 +43,7 @@ class Model:
         if theta.shape != (want,):
             raise ValueError(f"theta has shape {theta.shape}, the dimensions need ({want},)")
         self.theta = theta
-        self.spec = spec
+        self._spec = spec
         dx, du = spec.state_dim, spec.control_dim
         self.x_mean = np.zeros(dx) if x_mean is None else np.asarray(x_mean, dtype=np.float64)
         self.x_std = np.ones(dx) if x_std is None else np.asarray(x_std, dtype=np.float64)
@@ -84,6 +84,15 @@ class Model:
         model_file.write_model(path, self.spec, self.params, norm, {**self.attrs, **attrs})
 
     # ---- views -----------------------------------------------------------
+    @property
+    def spec(self):
+        """The field's FieldSpec; its kinematics, if any, in this model's normalised units (the
+        kernels' own), so they follow the normalisation when it changes."""
+        kinematics = self._spec.kinematics
+        if kinematics is None:
+            return self._spec
+        return replace(self._spec, kinematics=kinematics.scaled(self.x_mean, self.x_std))
+
     @property
     def kind(self):
         return self.spec.kind
@@ -191,6 +200,7 @@ class Model:
                 "aggregation": agg.mlp, "mean_degree": agg.mean_degree, "linear_aggregate": s.linear_path,
                 "linear_aggregation": agg.own_linear, "linear_target": agg.target if s.linear_path else None,
                 "dt": s.dt, "substeps": s.substeps, "encoder_window": s.encoder_window,
+                "kinematics": None if s.kinematics is None else s.kinematics.text(),
                 "self_messages": s.self_messages, "zero_messages": s.zero_messages, "dtype": str(self.dtype),
                 "parameters": int(self.theta.size),
                 "arrays": {name: list(a.shape) for name, a in self.params.items()},
