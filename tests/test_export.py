@@ -15,6 +15,7 @@ from engine_helpers import make_graph, random_model
 from cli.main import main
 from mpnode import Simulator, write_trajectories
 from mpnode.data import Trajectories
+from mpnode.engine.kinematics import Kinematics
 from mpnode.export import write_numpy_module
 
 N, DX, DU, B, T = 7, 2, 2, 3, 4
@@ -29,6 +30,8 @@ KINDS = {
     "l2s-mean-self": dict(kind="l2s", aggregation="mean", self_messages=True),
     "node": dict(kind="node", n_nodes=N),
     "mpnode-encoder": dict(message_dim=3, encoder_window=3),  # format 4: the encoder is not exported
+    "mpnode-kinematics": dict(message_dim=3, kinematics=Kinematics.parse("0:1")),
+    "node-kinematics": dict(kind="node", n_nodes=N, kinematics=Kinematics.parse("1:0")),
 }
 
 

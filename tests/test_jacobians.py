@@ -11,6 +11,7 @@ from engine_helpers import random_theta, spec_
 from mpnode import Model, Simulator
 from mpnode.base.graph import Graph
 from mpnode.engine import jacobians
+from mpnode.engine.kinematics import Kinematics
 
 N, DX, DU, B = 12, 2, 2, 2
 
@@ -21,6 +22,8 @@ KINDS = {
     "l2s": dict(kind="l2s", aggregation="sum"),
     "node": dict(kind="node", n_nodes=N),
     "mpnode-encoder": dict(message_dim=3, encoder_window=3),  # format 4: the encoder's weights follow the field's
+    "mpnode-kinematics": dict(message_dim=3, kinematics=Kinematics.parse("0:1")),
+    "node-kinematics": dict(kind="node", n_nodes=N, kinematics=Kinematics.parse("1:0")),
 }
 
 
@@ -94,7 +97,7 @@ def test_step_jacobians_match_finite_differences(name):
         outside = np.ones_like(fx[k], dtype=bool)
         outside[sx[k].nonzero()] = False
         assert np.abs(fx[k][outside]).max(initial=0) < 1e-9 * np.abs(fx[k]).max()
-    if name != "node":  # the pattern follows the graph: the isolated node hears only itself
+    if not name.startswith("node"):  # the pattern follows the graph: the isolated node hears only itself
         assert sx[0].nnz < 0.75 * (N * DX) ** 2
         assert set(sx[0][[N * DX - 1]].nonzero()[1]) == {N * DX - 2, N * DX - 1}
 

@@ -7,8 +7,8 @@ from mpnode.engine.spec import rule_weights
 
 def model_arrays(model, graph):
     """{name: value}: the spec's settings, the normalisation, the field's named parameters
-    (model dtype; an initial-state encoder's are left out: an export steps from a given state)
-    and, for the kinds that hear neighbours, the graph's CSR rows with each node's aggregation
+    (model dtype; an initial-state encoder's are left out: an export steps from a given state),
+    the kinematics' products (``kin_*``, mpnode.engine.kinematics.Kinematics.matrices) and, for the kinds that hear neighbours, the graph's CSR rows with each node's aggregation
     weight (``weight``; ``linear_weight`` when the linear path has its own rule), the rows
     that hear someone and the empty rows (L2S gives them psi)."""
     spec, dtype = model.spec, model.dtype
@@ -20,6 +20,9 @@ def model_arrays(model, graph):
          "dtype": np.dtype(dtype).name, "x_mean": model.x_mean, "x_std": model.x_std, "u_mean": model.u_mean,
          "u_std": model.u_std}
     p.update({k: np.array(v) for k, v in model.params.items() if k in field_shapes(spec)})
+    if spec.kinematics is not None:  # the fixed derivatives, as products (Kinematics.matrices)
+        fixed = spec.kinematics.matrices(spec.state_dim, spec.state_width, dtype)
+        p.update({"kin_" + k: v for k, v in fixed.items()})
     if spec.kind != "node":
         agg = spec.aggregation
         deg = graph.degrees()

@@ -73,6 +73,19 @@ def _mlp(g, p, v):
 
 def _field(g, p, z, u):
     """dz/dt of the model's kind: z (B, N, dz), u (B, N, du) or None -> (B, N, dz)."""
+    k = _network_field(g, p, z, u)
+    if "kin_keep" not in p:
+        return k
+    x = g.columns(z, 0, p["state_dim"])  # the kinematics' fixed derivatives, as the standalone module's
+    q = g.op("Unsqueeze", g.linear(x, p["kin_Sq"], p["kin_mq"]), g.const([-1], np.int64))
+    w = g.op("Unsqueeze", g.linear(x, p["kin_Sw"], p["kin_mw"]), g.const([-2], np.int64))
+    outer = g.op("Reshape", g.op("Mul", q, w), g.const([0, 0, p["kin_T"].shape[0]], np.int64))
+    fixed = g.op("Add", g.linear(x, p["kin_A"], p["kin_offset"]), g.op("MatMul", outer, g.const(p["kin_T"])))
+    return g.op("Add", g.op("Mul", k, g.const(p["kin_keep"])), fixed)
+
+
+def _network_field(g, p, z, u):
+    """The network's dz/dt, every dimension learned."""
     dx, kind = p["state_dim"], p["kind"]
     if kind == "node":
         n, du = p["n_nodes"], p["control_dim"]

@@ -43,6 +43,16 @@ def aggregate(p, src, weight):
 
 def field(p, z, u):
     """dz/dt (B, N, dz) of the model's kind at the full state z, controls u (B, N, du)."""
+    k = network_field(p, z, u)
+    if "kin_keep" not in p:
+        return k
+    x = z[..., :p["state_dim"]]  # the derivatives the kinematics fix (a position's is its velocity)
+    outer = (x @ p["kin_Sq"] + p["kin_mq"])[..., :, None] * (x @ p["kin_Sw"] + p["kin_mw"])[..., None, :]
+    return k * p["kin_keep"] + x @ p["kin_A"] + p["kin_offset"] + outer.reshape(*x.shape[:-1], -1) @ p["kin_T"]
+
+
+def network_field(p, z, u):
+    """The network's dz/dt, every dimension learned."""
     dx, kind = p["state_dim"], p["kind"]
     if kind == "node":
         b = z.shape[0]
