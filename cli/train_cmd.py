@@ -322,7 +322,7 @@ def print_validation(result):
                    "learns only the rest: terms D:S (x_D' = x_S: a position and its velocity) or qD:S (the unit "
                    "quaternion x_D..x_D+3, [w, x, y, z], turned by the body rates x_S..x_S+2), separated by "
                    "commas, e.g. 0:7,1:8,2:9,q3:10 (the quadrotor); none: every derivative learned (mpnode and "
-                   "node models).  Default: the recipe's.")
+                   "node models).  Default: none.")
 @recipe_option("the MP-NODE paper's: mean aggregation, plateau schedule, batch 128")
 @click.option("--trajectories", type=click.IntRange(min=2),
               help=f"Only when DATA is a scene: trajectories to generate (default {SCENE_TRAJECTORIES}; a scene set: "

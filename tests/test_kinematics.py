@@ -65,7 +65,8 @@ def test_kernels_equal_the_numpy_path(driver, kind):
 def test_gradient_matches_finite_differences(driver, kind):
     options = {"kind": "node", "n_nodes": 9, "message_dim": 0} if kind == "node" else {}
     graph = mixed_graph(4, big=200) if kind == "mpnode" else mixed_graph(4, big=18)
-    spec = model_with_kinematics(4, **options).spec
+    model = model_with_kinematics(4, **options)
+    spec = model.spec
     T = 3
     theta, x0, u = problem(spec, graph, T, seed=5)
     x, vjp = forward_with_vjp(spec, theta, x0, graph, u, T)
@@ -87,12 +88,11 @@ def test_gradient_matches_finite_differences(driver, kind):
             fd = (value(*plus) - value(*minus)) / (2 * eps)
             assert abs(fd - np.sum(grad * d)) < 1e-6 * abs(fd), (arg, fd, np.sum(grad * d))
     # the network's outputs for the fixed derivatives are not used: their weights get no gradient
-    w3 = model_with_kinematics(4, **options).params["W3"]
-    fixed_cols = list(Kinematics.parse(TERMS).fixed)
-    if kind == "mpnode":
-        start = sum(v.size for k, v in model_with_kinematics(4).params.items() if k in ("W1", "b1", "W2", "b2"))
-        g3 = gtheta[start:start + w3.size].reshape(w3.shape)
-        assert np.all(g3[:, fixed_cols] == 0) and np.all(g3[:, 4:7] != 0)
+    g3 = model.params["W3"].copy()
+    start = sum(v.size for k, v in model.params.items() if k in ("W1", "b1", "W2", "b2"))
+    g3[:] = gtheta[start:start + g3.size].reshape(g3.shape)
+    fixed = [i * DX + d for i in range(g3.shape[1] // DX or 1) for d in Kinematics.parse(TERMS).fixed]
+    assert np.all(g3[:, fixed] == 0) and np.all(g3[:, 4:7] != 0)
 
 
 def test_the_model_file_holds_them_and_older_versions_are_refused(tmp_path):
@@ -124,6 +124,24 @@ def test_bad_terms_are_refused_with_the_field_named(text, words):
 def test_l2s_has_no_kinematics():
     with pytest.raises(InputError, match="l2s"):
         Model.create(DX, kind="l2s", kinematics=TERMS)
+
+
+def test_train_resume_finetune_and_inspect_keep_them(tmp_path, tiny_file):
+    data, out = tiny_file(tmp_path / "d.h5"), tmp_path / "m.h5"
+
+    def run(*args):
+        return CliRunner().invoke(main, [str(a) for a in args])
+
+    quick = ("--hidden", 8, "--batch-size", 8, "--kinematics", "0:1")
+    assert run("train", data, "-o", out, "--epochs", 2, *quick).exit_code == 0
+    res = run("train", data, "-o", out, "--epochs", 3, "--resume", *quick)
+    assert res.exit_code == 0 and "resuming at epoch 2" in res.output, res.output
+    res = run("train", data, "-o", out, "--epochs", 4, "--resume", "--kinematics", "1:0")
+    assert res.exit_code == 2 and "contradicts the run being resumed" in res.output
+    assert run("finetune", out, data, "-o", tmp_path / "f.h5", "--epochs", 1).exit_code == 0
+    assert Model.load(tmp_path / "f.h5").spec.kinematics.text() == "0:1"
+    res = run("inspect", tmp_path / "f.h5")
+    assert res.exit_code == 0 and "kinematics 0:1 (fixed, not learned)" in res.output
 
 
 def test_train_refuses_terms_beyond_the_state(tmp_path, tiny_file):

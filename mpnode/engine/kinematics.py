@@ -42,7 +42,7 @@ class Kinematics:
         for term in str(text).replace(" ", "").split(","):
             quaternion = term[:1].lower() == "q"
             parts = (term[1:] if quaternion else term).split(":")
-            if len(parts) != 2 or not all(p.isdigit() for p in parts):
+            if len(parts) != 2 or not all(p.isdecimal() and p.isascii() for p in parts):
                 raise InputError(source, field, f"has the term {term!r}",
                                  "terms D:S (x_D' = x_S) or qD:S (quaternion at D, body rates at S), "
                                  "separated by commas, e.g. 0:7,1:8,2:9,q3:10")

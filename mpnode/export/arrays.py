@@ -8,9 +8,10 @@ from mpnode.engine.spec import rule_weights
 def model_arrays(model, graph):
     """{name: value}: the spec's settings, the normalisation, the field's named parameters
     (model dtype; an initial-state encoder's are left out: an export steps from a given state),
-    the kinematics' products (``kin_*``, mpnode.engine.kinematics.Kinematics.matrices) and, for the kinds that hear neighbours, the graph's CSR rows with each node's aggregation
-    weight (``weight``; ``linear_weight`` when the linear path has its own rule), the rows
-    that hear someone and the empty rows (L2S gives them psi)."""
+    the kinematics' products (``kin_*``: mpnode.engine.kinematics.Kinematics.matrices) and, for
+    the kinds that hear neighbours, the graph's CSR rows with each node's aggregation weight
+    (``weight``; ``linear_weight`` when the linear path has its own rule), the rows that hear
+    someone and the empty rows (L2S gives them psi)."""
     spec, dtype = model.spec, model.dtype
     n = spec.n_nodes if spec.kind == "node" else graph.n_nodes
     model.check_nodes(graph.n_nodes)

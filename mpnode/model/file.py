@@ -118,7 +118,8 @@ class _Attrs:
             spec = FieldSpec.from_attrs(values)
         except InputError as e:
             raise InputError(self.path, e.field, e.problem, e.expected) from None
-        if (version > 1 or "ensemble_size" in self.a) and version != version_of(spec, "ensemble_size" in self.a):
+        featured = version > 1 or "ensemble_size" in self.a or spec.kinematics is not None
+        if featured and version != version_of(spec, "ensemble_size" in self.a):
             raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(spec.linear_path)}, "
                              f"encoder_window {spec.encoder_window}, ensemble_size {self.a.get('ensemble_size')} "
                              f"and kinematics {self.a.get('kinematics')!r}",

@@ -152,7 +152,9 @@ def model_config_of(spec, dtype):
     return ModelConfig(kind=spec.kind, message_dim=spec.message_dim, hidden=spec.hidden, aggregation=agg.mlp,
                        linear_aggregate=spec.linear_path, linear_aggregation=agg.own_linear,
                        linear_target=agg.target, self_messages=spec.self_messages,
-                       zero_messages=spec.zero_messages, substeps=spec.substeps, dtype=np.dtype(dtype).name)
+                       zero_messages=spec.zero_messages, substeps=spec.substeps, dtype=np.dtype(dtype).name,
+                       encoder_window=spec.encoder_window,
+                       kinematics=None if spec.kinematics is None else spec.kinematics.text())
 
 
 def _same_model(model, spec, name, value):

@@ -2,8 +2,9 @@
 
 Modules: ``layers`` (dense layers, tanh, neighbour sums), ``feature_major`` (products on
 (width, n) tiles, compiled per chunk width: the MP-NODE field's layers and the dense neighbour
-sums), ``mpnode_field`` and ``l2s_field`` (one field each: send, update and their VJPs), ``rk4``
-(the drivers), ``reorder`` (node rows between the user's order and the kernels').
+sums), ``mpnode_field`` and ``l2s_field`` (one field each: send, update and their VJPs),
+``kinematics`` (the derivatives a model's kinematics fix, and their VJP), ``rk4`` (the drivers),
+``reorder`` (node rows between the user's order and the kernels').
 `mpnode.engine` is the Python entry point; nothing else calls these directly.
 
 Numba caches each compiled function under its own source file's hash, but a compiled
