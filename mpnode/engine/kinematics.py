@@ -14,6 +14,7 @@ The kernels work in the model's normalised units, so a `Kinematics` also carries
 normalisation (`scaled`); `constants` packs both into the floats the kernels read
 (mpnode.engine.kernels.kinematics), appended to the parameters for the call.
 """
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -86,6 +87,11 @@ class Kinematics:
         """The floats the kernels read (mpnode.engine.kernels.kinematics), in ``dtype``: per pair
         (d, s, a, b), x_d' = a xn_s + b; per quaternion (q0, w0, q's 4 means, 4 stds, w's 3 means,
         3 stds)."""
+        return self._packed.astype(dtype)
+
+    @functools.cached_property
+    def _packed(self):
+        """`constants` in float64, packed once: every rollout and VJP call reads them."""
         read = tuple(s for _, s in self.pairs) + tuple(w + 2 for _, w in self.quaternions)
         n = max(self.fixed + read, default=-1) + 1
         mean = np.zeros(n) if self.mean is None else np.asarray(self.mean, dtype=np.float64)
@@ -95,7 +101,7 @@ class Kinematics:
             out += [d, s, std[s] / std[d], mean[s] / std[d]]
         for q, w in self.quaternions:
             out += [q, w, *mean[q:q + 4], *std[q:q + 4], *mean[w:w + 3], *std[w:w + 3]]
-        return np.asarray(out, dtype=dtype)
+        return np.asarray(out, dtype=np.float64)
 
     def width(self):
         """How many floats `constants` has."""

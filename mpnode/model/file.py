@@ -1,6 +1,6 @@
 """Model files (docs/model-format.md, version 2; 3 for a model with the linear aggregate path;
-4 with an initial-state encoder; 5 for an ensemble; 6 with kinematics; version 1 still reads): validated reader,
-atomic writer.
+4 with an initial-state encoder; 5 for an ensemble; 6 with kinematics; version 1 still reads):
+validated reader, atomic writer.
 
 The reader returns what the file holds (spec, flat parameters, normalisation, extra
 attributes) and the writer takes the same; `mpnode.model.Model` makes a model of them.

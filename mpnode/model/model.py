@@ -44,6 +44,7 @@ class Model:
             raise ValueError(f"theta has shape {theta.shape}, the dimensions need ({want},)")
         self.theta = theta
         self._spec = spec
+        self._scaled = (None, spec)  # (the normalisation it was scaled for, the spec): see `spec`
         dx, du = spec.state_dim, spec.control_dim
         self.x_mean = np.zeros(dx) if x_mean is None else np.asarray(x_mean, dtype=np.float64)
         self.x_std = np.ones(dx) if x_std is None else np.asarray(x_std, dtype=np.float64)
@@ -87,11 +88,15 @@ class Model:
     @property
     def spec(self):
         """The field's FieldSpec; its kinematics, if any, in this model's normalised units (the
-        kernels' own), so they follow the normalisation when it changes."""
+        kernels' own), so they follow the normalisation when it changes.  Scaled again only then:
+        a Simulator step or an MPC evaluation reads it on every call."""
         kinematics = self._spec.kinematics
         if kinematics is None:
             return self._spec
-        return replace(self._spec, kinematics=kinematics.scaled(self.x_mean, self.x_std))
+        norm = self.x_mean.tobytes() + self.x_std.tobytes()
+        if self._scaled[0] != norm:
+            self._scaled = (norm, replace(self._spec, kinematics=kinematics.scaled(self.x_mean, self.x_std)))
+        return self._scaled[1]
 
     @property
     def kind(self):
