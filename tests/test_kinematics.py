@@ -134,6 +134,8 @@ def test_train_resume_finetune_and_inspect_keep_them(tmp_path, tiny_file):
 
     quick = ("--hidden", 8, "--batch-size", 8, "--kinematics", "0:1")
     assert run("train", data, "-o", out, "--epochs", 2, *quick).exit_code == 0
+    with np.load(str(out) + ".state") as checkpoint:  # an older reader refuses it instead of dropping them
+        assert int(checkpoint["version"]) == 2
     res = run("train", data, "-o", out, "--epochs", 3, "--resume", *quick)
     assert res.exit_code == 0 and "resuming at epoch 2" in res.output, res.output
     res = run("train", data, "-o", out, "--epochs", 4, "--resume", "--kinematics", "1:0")

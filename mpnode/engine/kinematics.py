@@ -73,9 +73,11 @@ class Kinematics:
         """The same kinematics for a model that works on (x - mean) / std."""
         return Kinematics(self.pairs, self.quaternions, tuple(map(float, mean)), tuple(map(float, std)))
 
+    @functools.lru_cache(maxsize=32)
     def for_systems(self, n_nodes, state_dim):
         """The kinematics of a whole system of ``n_nodes`` nodes whose states are laid end to end
-        (a plain NODE as the kernels run it)."""
+        (a plain NODE as the kernels run it).  Cached: a node model asks at every engine call,
+        and the same instance keeps its constants packed."""
         def tile(terms):
             return tuple((a + i * state_dim, b + i * state_dim) for i in range(n_nodes) for a, b in terms)
 

@@ -14,6 +14,10 @@ from .config import TrainConfig, curriculum_stage
 from .optim import Adam
 
 STATE_VERSION = 1
+#: the checkpoint of a run whose model has kinematics: a reader that knows no kinematics would
+#: resume it without them, so it must refuse the file (the model file's version 6 does the same)
+KINEMATICS_STATE_VERSION = 2
+READABLE_VERSIONS = (STATE_VERSION, KINEMATICS_STATE_VERSION)
 
 
 def state_path(output):
@@ -70,7 +74,8 @@ class TrainState:
     def snapshot(self):
         """The checkpoint's contents (copies): what `load` needs to continue this run exactly."""
         m = self.model
-        snap = {"version": np.int64(STATE_VERSION), "theta": self.theta.copy(), "best_theta": self.best_theta.copy(),
+        version = STATE_VERSION if m.spec.kinematics is None else KINEMATICS_STATE_VERSION
+        snap = {"version": np.int64(version), "theta": self.theta.copy(), "best_theta": self.best_theta.copy(),
                 "epoch": np.int64(self.epoch), "best_val": np.float64(self.best_val),
                 "best_epoch": np.int64(self.best_epoch), "last_improve": np.int64(self.last_improve),
                 "bad_streak": np.int64(self.bad_streak), "elapsed": np.float64(self.elapsed),
@@ -182,6 +187,7 @@ def load_state(path):
                          "the .state file an interrupted `mpnode train -o MODEL` leaves beside MODEL") from None
     except (OSError, ValueError) as e:
         raise InputError(path, "file", f"is not a readable checkpoint ({e})", "a .state file written by mpnode") from None
-    if int(state.get("version", -1)) != STATE_VERSION:
-        raise InputError(path, "version", f"is {state.get('version')}", f"checkpoint version {STATE_VERSION}")
+    if int(state.get("version", -1)) not in READABLE_VERSIONS:
+        raise InputError(path, "version", f"is {state.get('version')}",
+                         f"checkpoint version {' or '.join(map(str, READABLE_VERSIONS))}")
     return state

@@ -14,6 +14,16 @@ def constants(theta, dims):
 
 
 @njit(**JIT)
+def quaternion_and_rates(t, o, XT, q0, w0, r):
+    """Node r's quaternion (w, x, y, z) and body rates in the data's units: the term at t[o:]
+    holds their means (t[o + 2:o + 6], t[o + 10:o + 13]) and scales (t[o + 6:o + 10], t[o + 13:o + 16])."""
+    qw, qx = t[o + 6] * XT[q0, r] + t[o + 2], t[o + 7] * XT[q0 + 1, r] + t[o + 3]
+    qy, qz = t[o + 8] * XT[q0 + 2, r] + t[o + 4], t[o + 9] * XT[q0 + 3, r] + t[o + 5]
+    wx, wy = t[o + 13] * XT[w0, r] + t[o + 10], t[o + 14] * XT[w0 + 1, r] + t[o + 11]
+    return qw, qx, qy, qz, wx, wy, t[o + 15] * XT[w0 + 2, r] + t[o + 12]
+
+
+@njit(**JIT)
 def apply(theta, dims, XT, KT):
     """KT (dz, n): the fixed rows overwritten with their derivatives at the states XT."""
     t = constants(theta, dims)
@@ -28,10 +38,7 @@ def apply(theta, dims, XT, KT):
     for _ in range(int(t[1])):
         q0, w0 = int(t[o]), int(t[o + 1])
         for r in range(n):
-            qw, qx = t[o + 6] * XT[q0, r] + t[o + 2], t[o + 7] * XT[q0 + 1, r] + t[o + 3]
-            qy, qz = t[o + 8] * XT[q0 + 2, r] + t[o + 4], t[o + 9] * XT[q0 + 3, r] + t[o + 5]
-            wx, wy = t[o + 13] * XT[w0, r] + t[o + 10], t[o + 14] * XT[w0 + 1, r] + t[o + 11]
-            wz = t[o + 15] * XT[w0 + 2, r] + t[o + 12]
+            qw, qx, qy, qz, wx, wy, wz = quaternion_and_rates(t, o, XT, q0, w0, r)
             KT[q0, r] = half * (-qx * wx - qy * wy - qz * wz) / t[o + 6]
             KT[q0 + 1, r] = half * (qw * wx + qy * wz - qz * wy) / t[o + 7]
             KT[q0 + 2, r] = half * (qw * wy + qz * wx - qx * wz) / t[o + 8]
@@ -73,10 +80,7 @@ def vjp(theta, dims, XT, G, gin, i0, zoff):
         q0, w0 = int(t[o]), int(t[o + 1])
         for r in range(n):
             zi = i0 + r - zoff
-            qw, qx = t[o + 6] * XT[q0, r] + t[o + 2], t[o + 7] * XT[q0 + 1, r] + t[o + 3]
-            qy, qz = t[o + 8] * XT[q0 + 2, r] + t[o + 4], t[o + 9] * XT[q0 + 3, r] + t[o + 5]
-            wx, wy = t[o + 13] * XT[w0, r] + t[o + 10], t[o + 14] * XT[w0 + 1, r] + t[o + 11]
-            wz = t[o + 15] * XT[w0 + 2, r] + t[o + 12]
+            qw, qx, qy, qz, wx, wy, wz = quaternion_and_rates(t, o, XT, q0, w0, r)
             cw, cx = half * G[r, q0] / t[o + 6], half * G[r, q0 + 1] / t[o + 7]
             cy, cz = half * G[r, q0 + 2] / t[o + 8], half * G[r, q0 + 3] / t[o + 9]
             gin[zi, q0] += (cx * wx + cy * wy + cz * wz) * t[o + 6]
