@@ -18,7 +18,8 @@ adds to each plan's predictions its model's last one-step error, once per step
 (ShootingMPC(offset_free=True)): the true equations' own error is that of RK4 at dt / 10.
 --anchor-torques WT charges the anchor's torque part (the departure summing to zero over a
 quadrotor's rotors) WT instead of W; --load-unseen has the true-model MPC plan without the
-load's swing, as a model of the quadrotors alone must.  --record FILE writes the flights of one
+load's swing, as a model of the quadrotors alone must; --linearised has the learned MPC plan
+through the model's linearisation about the warm-started plan (`LinearisedMPC`).  --record FILE writes the flights of one
 controller as a trajectory file to learn from, --explore S adding N(0, S^2) to every thrust.
 The paths are new: start and goal drawn as the scene draws them but from other seeds, and the
 doorway moved (sideways by up to 0.4 m, up by up to 0.3 m), where the training data's doorway
@@ -28,7 +29,7 @@ time, and the mean CPU time of this process, which a shared or paused machine do
 and the mean |F - F_scene| of the thrusts applied.  No thrust noise unless --explore, nominal gains.
 
     python benchmarks/studies/mpc/quadrotor_mpc.py MODEL.h5 [--paths 20] [--horizon 10] [--anchor W] \
-        [--anchor-torques WT] [--offset-free] [--load-unseen] [--record FILE [--explore S]] [--out DIR]
+        [--anchor-torques WT] [--offset-free] [--load-unseen] [--linearised] [--record FILE [--explore S]] [--out DIR]
 """
 import argparse
 import json
@@ -39,10 +40,11 @@ import time
 import numpy as np
 
 from data_gen import quadrotor as quad
-from mpnode import Model, write_trajectories
+from mpnode import Model, engine, write_trajectories
 from mpnode.base.graph import Graph
 from mpnode.control import ShootingMPC, optimise_controls, tracking_cost
 from mpnode.data import Trajectories
+from mpnode.model.model import batch_graph, to_time_major
 from true_equations import rk4_rollout
 
 N, DT, STEPS = 3, 0.1, 50
@@ -153,9 +155,38 @@ def true_mpc(ref, physics, horizon, iterations, anchor, anchor_torques=None, hid
     return control
 
 
-def learned_mpc(model, ref, physics, horizon, iterations, messages, anchor, offset_free=False, anchor_torques=None):
-    mpc = ShootingMPC(model, Graph.complete(N), horizon, bounds=(0.0, physics.F_max), iterations=iterations,
-                      messages=messages, offset_free=offset_free)
+class LinearisedMPC(ShootingMPC):
+    """Plans through the model's linearisation about the warm-started plan U0: X(U) = X(U0) + J (U - U0),
+    J by one-sided differences of every control at once (one batched rollout of K + 1 copies, K the
+    plan's controls), so that a plan cannot exploit how the model bends away from its response at U0.
+    One model, not an ensemble."""
+
+    EPS = 1e-4  # N: float64 rollouts, thrusts of about 1 N
+
+    def _predict(self, z0, U):
+        if getattr(self, "_at", None) is not z0:  # a control step's first evaluation is at its warm start
+            self._at = z0
+            self._X0, self._J, self._U0 = self._linearise(z0[0], U)
+        J = self._J
+        X = self._X0 + (J @ (U - self._U0).ravel()).reshape(self._X0.shape)
+        return X, lambda dX: (J.T @ dX.ravel()).reshape(U.shape)
+
+    def _linearise(self, z0, U0):
+        m, (_, n, dx), horizon, k = self.model, self._shape, U0.shape[1], U0.size
+        UB = np.repeat(U0, k + 1, axis=0)
+        UB.reshape(k + 1, k)[1 + np.arange(k), np.arange(k)] += self.EPS
+        un = to_time_major(m.normalize_u(UB))
+        xs, _ = engine.integrate(m.spec, m.theta, np.tile(z0, (k + 1, 1)), batch_graph(self.graph, k + 1), un,
+                                 horizon)
+        X = m.denormalize_x(xs.reshape(horizon + 1, k + 1, n, dx).transpose(1, 0, 2, 3))
+        return X[:1] + self._offset, (X[1:] - X[:1]).reshape(k, -1).T / self.EPS, U0.copy()
+
+
+def learned_mpc(model, ref, physics, horizon, iterations, messages, anchor, offset_free=False, anchor_torques=None,
+                linearised=False):
+    mpc = (LinearisedMPC if linearised else ShootingMPC)(model, Graph.complete(N), horizon,
+                                                          bounds=(0.0, physics.F_max), iterations=iterations,
+                                                          messages=messages, offset_free=offset_free)
     started, scene = [], scene_controller(ref, physics)
 
     def control(t, y):
@@ -241,6 +272,8 @@ def main():
                          "(no swing), as a learned model of the quadrotors must")
     ap.add_argument("--offset-free", action="store_true",
                     help="the learned MPC adds its model's last one-step error, once per step, to every plan's predictions")
+    ap.add_argument("--linearised", action="store_true",
+                    help="the learned MPC plans through the model's linearisation about its warm start")
     ap.add_argument("--record", metavar="FILE",
                     help="write the flights of the one controller given (--controllers) as a trajectory file")
     ap.add_argument("--explore", type=float, default=0.0,
@@ -254,10 +287,11 @@ def main():
               "true": lambda ref, p: true_mpc(ref, p, a.horizon, a.iterations, a.anchor, a.anchor_torques,
                                               a.load_unseen),
               "learned": lambda ref, p: learned_mpc(model, ref, p, a.horizon, a.iterations, a.messages, a.anchor,
-                                                     a.offset_free, a.anchor_torques)}
+                                                     a.offset_free, a.anchor_torques, a.linearised)}
     results = {"model": os.path.basename(a.model), "horizon": a.horizon, "iterations": a.iterations,
                "messages": a.messages, "anchor": a.anchor, "anchor_torques": a.anchor_torques,
-               "load_unseen": a.load_unseen, "offset_free": a.offset_free, "explore": a.explore, "paths": []}
+               "load_unseen": a.load_unseen, "offset_free": a.offset_free, "linearised": a.linearised,
+               "explore": a.explore, "paths": []}
     flights, seeds = [], []
     for p in range(a.paths):
         path = new_path(a.first_seed + p)
