@@ -44,6 +44,20 @@ def test_resume_through_the_cli_matches_a_straight_run(tmp_path, tiny_file):
     assert res.exit_code == 2 and "does not exist" in res.output
 
 
+def test_resume_refuses_a_checkpoint_of_an_unknown_version(tmp_path, tiny_file):
+    data, out = tiny_file(tmp_path / "d.h5"), tmp_path / "m.h5"
+    assert run("train", data, "-o", out, "--epochs", 1, *QUICK).exit_code == 0
+    with np.load(f"{out}.state") as z:
+        checkpoint = {k: z[k] for k in z.files}
+    assert int(checkpoint["version"]) == 1  # a run without kinematics stays readable by older versions
+    checkpoint["version"] = np.int64(3)  # one from a newer mpnode
+    with open(f"{out}.state", "wb") as f:
+        np.savez(f, **checkpoint)
+    res = run("train", data, "-o", out, "--epochs", 2, "--resume")
+    assert res.exit_code == 2 and "version" in res.output and "is 3" in res.output, res.output
+    assert "Traceback" not in res.output
+
+
 def test_finetune_keeps_weights_and_normalisation(tmp_path, tiny_file):
     data = tiny_file(tmp_path / "d.h5")
     other = tiny_file(tmp_path / "e.h5", seed=4, offset=0.5)
