@@ -20,17 +20,21 @@ from data_gen.scenes import load_scene
 from mpnode import write_trajectories
 
 SIDEWAYS, UP = 0.4, 0.3
-_one_doorway = quad.closed_loop
-_transport_times = None  # (low, high) s, or None: the scene's own
 
 
-def _moved_doorway(rng, n, n_steps, dt, physics, ctrl=None, *args, **kwargs):
-    """quad.closed_loop through a doorway (and in a transport time) drawn from the trajectory's generator first."""
-    door = np.asarray(quad.CONTROL["doorway"], float) + [0.0, rng.uniform(-SIDEWAYS, SIDEWAYS), rng.uniform(0.0, UP)]
-    drawn = {"doorway": tuple(door)}
-    if _transport_times is not None:
-        drawn["transport_time"] = rng.uniform(*_transport_times)
-    return _one_doorway(rng, n, n_steps, dt, physics, {**(ctrl or {}), **drawn}, *args, **kwargs)
+def moved_doorway(one_doorway, transport_times=None):
+    """``one_doorway`` (quad.closed_loop) through a doorway, and in a transport time drawn from
+    ``transport_times`` (low, high) s unless None, drawn from the trajectory's generator first."""
+
+    def closed_loop(rng, n, n_steps, dt, physics, ctrl=None, *args, **kwargs):
+        door = np.asarray(quad.CONTROL["doorway"], float) + [0.0, rng.uniform(-SIDEWAYS, SIDEWAYS),
+                                                             rng.uniform(0.0, UP)]
+        drawn = {"doorway": tuple(door)}
+        if transport_times is not None:
+            drawn["transport_time"] = rng.uniform(*transport_times)
+        return one_doorway(rng, n, n_steps, dt, physics, {**(ctrl or {}), **drawn}, *args, **kwargs)
+
+    return closed_loop
 
 
 def main():
@@ -41,10 +45,8 @@ def main():
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--transport-times", metavar="LO,HI", help="draw the transport's duration (s) per trajectory")
     a = ap.parse_args()
-    global _transport_times
-    if a.transport_times:
-        _transport_times = tuple(float(v) for v in a.transport_times.split(","))
-    quad.closed_loop = _moved_doorway  # the generator's workers are forked from here and keep it
+    times = tuple(float(v) for v in a.transport_times.split(",")) if a.transport_times else None
+    quad.closed_loop = moved_doorway(quad.closed_loop, times)  # the generator's workers are forked and keep it
     scene = dataclasses.replace(load_scene(f"quad{a.nodes}"), trajectories=a.trajectories, seed=a.seed)
     write_trajectories(a.out, quad.generate(scene, workers=2))
 
