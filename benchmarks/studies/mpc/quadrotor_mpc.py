@@ -162,9 +162,15 @@ class LinearisedMPC(ShootingMPC):
     One model, not an ensemble."""
 
     EPS = 1e-4  # N: float64 rollouts, thrusts of about 1 N
+    _at = None  # the full states of the control step the linearisation is of
+
+    def __init__(self, model, *args, **kwargs):
+        super().__init__(model, *args, **kwargs)
+        if len(self.members) > 1:
+            raise ValueError("LinearisedMPC plans through one model, not an ensemble")
 
     def _predict(self, z0, U):
-        if getattr(self, "_at", None) is not z0:  # a control step's first evaluation is at its warm start
+        if self._at is not z0:  # a control step's first evaluation is at its warm start
             self._at = z0
             self._X0, self._J, self._U0 = self._linearise(z0[0], U)
         J = self._J
