@@ -9,6 +9,10 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 PAPER = BENCHMARKS / "paper"
 #: the paper suite's modules every experiment may import (the run definitions, the paper's numbers, helpers)
 SHARED = {"common", "runs_shared", "paper_numbers", "gene_grid"}
+#: the study scripts kept in the tree
+STUDIES = {"imperfect_data.py", "long_rollouts.py", "spread_ranking.py", "time_to_accuracy.py", "tta_torch.py",
+           "mpc/figures.py", "mpc/pendulum_mpc.py", "mpc/plan_windows.py", "mpc/quadrotor_mpc.py",
+           "mpc/torque_segments.py", "mpc/true_equations.py", "quadrotor/sizes_table.py", "quadrotor/swarm.py"}
 
 IMPORT_ALL = """
 import importlib.util, sys, traceback
@@ -34,6 +38,9 @@ def scripts():
 def test_every_benchmark_script_imports():
     files = scripts()
     assert len(files) > 20 and any(f.endswith("studies/tta_torch.py") for f in files)
+    # the studies kept in the tree: those whose evidence is current (the others live in the history)
+    studies = {f.split("benchmarks/studies/", 1)[1] for f in files if "benchmarks/studies/" in f}
+    assert studies == STUDIES, f"benchmarks/studies changed: update STUDIES ({sorted(studies ^ STUDIES)})"
     # one fresh interpreter (the scripts set numba threads and matplotlib backends) importing them all
     out = subprocess.run([sys.executable, "-c", IMPORT_ALL, *files], capture_output=True, text=True, timeout=300,
                          cwd=BENCHMARKS.parent)
