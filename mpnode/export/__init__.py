@@ -1,7 +1,8 @@
 """Export: a model on one graph as a file that runs without mpnode.
 
 Owns: `arrays` (the model on a graph as plain settings and arrays), `standalone` (the
-rollout in NumPy alone, copied into the exported module), `numpy_module` (writes OUT.py)
+exported module's docstring, decoding and rollout around the NumPy path's field and RK4, all
+copied into it), `numpy_module` (writes OUT.py)
 and `onnx_model` (writes OUT.onnx; needs the onnx extra, imported only there).  May
 import: model, data, engine, base.
 """

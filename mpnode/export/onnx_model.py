@@ -10,7 +10,9 @@ weights: one GEMM per stage, fast for the graphs of a few hundred nodes a contro
 runs on; its N^2 weights make it the wrong form beyond a few thousand nodes.
 
 Needs the ``onnx`` extra (pip install 'mpnode[onnx]'): onnx writes and checks the graph,
-onnxruntime runs it (the tests compare it with mpnode.Simulator).
+onnxruntime runs it.  The graph is built op by op, so it is a second implementation of the
+field and RK4; the tests hold it to the NumPy path's (mpnode.engine.numpy_path, which the
+NumPy module export holds).
 """
 import os
 
@@ -74,14 +76,15 @@ def _mlp(g, p, v):
 def _field(g, p, z, u):
     """dz/dt of the model's kind: z (B, N, dz), u (B, N, du) or None -> (B, N, dz)."""
     k = _network_field(g, p, z, u)
-    if "kin_keep" not in p:
+    if "kinematics" not in p:
         return k
-    x = g.columns(z, 0, p["state_dim"])  # the kinematics' fixed derivatives, as the standalone module's
-    q = g.op("Unsqueeze", g.linear(x, p["kin_Sq"], p["kin_mq"]), g.const([-1], np.int64))
-    w = g.op("Unsqueeze", g.linear(x, p["kin_Sw"], p["kin_mw"]), g.const([-2], np.int64))
-    outer = g.op("Reshape", g.op("Mul", q, w), g.const([0, 0, p["kin_T"].shape[0]], np.int64))
-    fixed = g.op("Add", g.linear(x, p["kin_A"], p["kin_offset"]), g.op("MatMul", outer, g.const(p["kin_T"])))
-    return g.op("Add", g.op("Mul", k, g.const(p["kin_keep"])), fixed)
+    kin = p["kinematics"]  # the fixed derivatives as products, as mpnode.engine.kinematics.derivatives_of
+    x = g.columns(z, 0, p["state_dim"])
+    q = g.op("Unsqueeze", g.linear(x, kin["Sq"], kin["mq"]), g.const([-1], np.int64))
+    w = g.op("Unsqueeze", g.linear(x, kin["Sw"], kin["mw"]), g.const([-2], np.int64))
+    outer = g.op("Reshape", g.op("Mul", q, w), g.const([0, 0, kin["T"].shape[0]], np.int64))
+    fixed = g.op("Add", g.linear(x, kin["A"], kin["offset"]), g.op("MatMul", outer, g.const(kin["T"])))
+    return g.op("Add", g.op("Mul", k, g.const(kin["keep"])), fixed)
 
 
 def _network_field(g, p, z, u):

@@ -13,65 +13,17 @@ import base64
 
 import numpy as np
 
-
-def decode(spec):
-    """The model of an exported file: scalars as they are, arrays from their base64 bytes."""
-    out = {}
-    for key, value in spec.items():
-        if isinstance(value, dict) and "base64" in value:
-            raw = base64.b64decode(value["base64"])
-            value = np.frombuffer(raw, dtype=np.dtype(value["dtype"])).reshape(value["shape"]).copy()
-        out[key] = value
-    return out
+from mpnode.engine.numpy_path import path  # the exported file holds its source instead (numpy_module)
 
 
-def mlp(p, v):
-    """tanh(tanh(v W1 + b1) W2 + b2) W3 + b3 over the last axis of v."""
-    h1 = np.tanh(v @ p["W1"] + p["b1"])
-    h2 = np.tanh(h1 @ p["W2"] + p["b2"])
-    return h2 @ p["W3"] + p["b3"]
-
-
-def aggregate(p, src, weight):
-    """Row i: weight[i] * (the sum of src over the nodes i hears [and i itself]); src (B, N, w)."""
-    out = src.copy() if p["self_messages"] else np.zeros_like(src)
-    rows = p["heard_rows"]
-    if len(rows):
-        out[:, rows] += np.add.reduceat(src[:, p["indices"]], p["indptr"][rows], axis=1)
-    return out * weight[:, None]
-
-
-def field(p, z, u):
-    """dz/dt (B, N, dz) of the model's kind at the full state z, controls u (B, N, du)."""
-    k = network_field(p, z, u)
-    if "kin_keep" not in p:
-        return k
-    x = z[..., :p["state_dim"]]  # the derivatives the kinematics fix (a position's is its velocity)
-    outer = (x @ p["kin_Sq"] + p["kin_mq"])[..., :, None] * (x @ p["kin_Sw"] + p["kin_mw"])[..., None, :]
-    return k * p["kin_keep"] + x @ p["kin_A"] + p["kin_offset"] + outer.reshape(*x.shape[:-1], -1) @ p["kin_T"]
-
-
-def network_field(p, z, u):
-    """The network's dz/dt, every dimension learned."""
-    dx, kind = p["state_dim"], p["kind"]
-    if kind == "node":
-        b = z.shape[0]
-        return mlp(p, np.concatenate([z.reshape(b, -1), u.reshape(b, -1)], axis=1)).reshape(z.shape)
-    if kind == "l2s":
-        h0 = np.tanh(np.concatenate([z, u], axis=2) @ p["W_lift"] + p["b_lift"])
-        a = aggregate(p, np.tanh(h0 @ p["W_msg"] + p["b_msg"]), p["weight"])
-        a[:, p["empty_rows"]] = p["psi"]
-        h1 = h0 + np.tanh(a @ p["W_upd"] + p["b_upd"])
-        return (h1 + h0) @ p["W_out"] + p["b_out"]
-    x, m = z[..., :dx], z[..., dx:]
-    heard = np.zeros_like(m) if p["zero_messages"] else aggregate(p, m, p["weight"])
-    k = mlp(p, np.concatenate([x, u, heard], axis=2))
-    if "W_agg" in p:  # the path linear in the aggregate, around the MLP
-        linear = heard if "linear_weight" not in p else aggregate(p, m, p["linear_weight"])
-        k[..., :p["W_agg"].shape[1]] += linear @ p["W_agg"]
-    if p["zero_messages"]:
-        k[..., dx:] = 0
-    return k
+def decode(value):
+    """An exported model's value: an array from its base64 bytes, a dict entry by entry, a scalar as it is."""
+    if isinstance(value, dict) and "base64" in value:
+        raw = base64.b64decode(value["base64"])
+        return np.frombuffer(raw, dtype=np.dtype(value["dtype"])).reshape(value["shape"]).copy()
+    if isinstance(value, dict):
+        return {key: decode(v) for key, v in value.items()}
+    return value
 
 
 def run(p, x0, steps=None, u=None):
@@ -92,19 +44,9 @@ def run(p, x0, steps=None, u=None):
     b = x0.shape[0]
     if du and (u is None or np.shape(u) != (b, steps, n, du)):
         raise ValueError(f"u has shape {None if u is None else np.shape(u)}, expected {(b, steps, n, du)}")
-    un = np.zeros((b, steps, n, 0), dtype) if not du else ((u - p["u_mean"]) / p["u_std"]).astype(dtype)
+    un = np.zeros((steps, b, n, 0), dtype) if not du else ((np.moveaxis(u, 1, 0) - p["u_mean"]) / p["u_std"])
     z = np.concatenate([((x0 - p["x_mean"]) / p["x_std"]).astype(dtype), np.zeros((b, n, p["message_dim"]), dtype)],
                        axis=2)
-    h = dtype.type(p["dt"] / p["substeps"])
-    half, sixth, two = h / dtype.type(2), h / dtype.type(6), dtype.type(2)
-    xs = [z[..., :dx]]
-    for t in range(steps):
-        for _ in range(p["substeps"]):
-            k1 = field(p, z, un[:, t])
-            k2 = field(p, z + half * k1, un[:, t])
-            k3 = field(p, z + half * k2, un[:, t])
-            k4 = field(p, z + h * k3, un[:, t])
-            z = z + sixth * (k1 + two * k2 + two * k3 + k4)
-        xs.append(z[..., :dx])
-    x = (np.stack(xs, axis=1) * p["x_std"] + p["x_mean"]).astype(dtype)
+    zs = path(p, z, un.astype(dtype), np.full(steps, p["dt"] / p["substeps"], dtype), np.full(steps, p["substeps"]))
+    x = (np.moveaxis(zs[..., :dx], 0, 1) * p["x_std"] + p["x_mean"]).astype(dtype)
     return x[0] if single else x
