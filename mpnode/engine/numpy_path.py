@@ -67,12 +67,19 @@ def node_field(p, x, u):
 
 
 def l2s_field(p, x, u):
-    """Encoder, one round of neighbour messages (psi for a node that hears nobody), decoder."""
+    """Encoder, one round of neighbour messages, decoder."""
+    h0, a = l2s_heard(p, x, u)
+    h1 = h0 + np.tanh(a @ p["W_upd"] + p["b_upd"])
+    return (h1 + h0) @ p["W_out"] + p["b_out"]
+
+
+def l2s_heard(p, x, u):
+    """(h0, a): each node's encoded [x, u] and the aggregate of its neighbours' messages (psi for
+    a node that hears nobody), the input the decoder's update layer takes."""
     h0 = np.tanh(np.concatenate([x, u], axis=-1) @ p["W_lift"] + p["b_lift"])
     a = aggregate(p, np.tanh(h0 @ p["W_msg"] + p["b_msg"]), p["weight"])
     a[..., p["empty_rows"], :] = p["psi"]
-    h1 = h0 + np.tanh(a @ p["W_upd"] + p["b_upd"])
-    return (h1 + h0) @ p["W_out"] + p["b_out"]
+    return h0, a
 
 
 def mpnode_field(p, z, u):
@@ -114,8 +121,8 @@ def path(p, z, u, h, substeps):
 
 #: the model in numpy alone: the exported NumPy module holds these functions' source, so they
 #: may use nothing but numpy and each other (tests/test_export.py checks)
-NUMPY_ONLY = (mlp, aggregate, derivatives_of, field, network_field, node_field, l2s_field, mpnode_field, rk4,
-              path)
+NUMPY_ONLY = (mlp, aggregate, derivatives_of, field, network_field, node_field, l2s_field, l2s_heard,
+              mpnode_field, rk4, path)
 
 
 def field_arrays(spec, theta, graph):
