@@ -92,8 +92,11 @@ class ModelConfig:
 
     def spec(self, state_dim, control_dim, dt, n_nodes=None, mean_degree=None):
         """The engine's FieldSpec of a model of these options for data with ``state_dim``,
-        ``control_dim`` and ``dt`` (a node model: ``n_nodes``; "scaled": ``mean_degree``)."""
-        return self._spec(state_dim, control_dim, dt, n_nodes, mean_degree, Kinematics.parse(self.kinematics))
+        ``control_dim`` and ``dt`` (a node model: ``n_nodes``; "scaled": ``mean_degree``): its
+        state is the data's ``state_dim`` dimensions and then the ``latent_dims``."""
+        state_dim = check_int(state_dim, "model", "state_dim", 1)
+        return self._spec(state_dim + self.latent_dims, control_dim, dt, n_nodes, mean_degree,
+                          Kinematics.parse(self.kinematics))
 
     def _spec(self, state_dim, control_dim, dt, n_nodes=None, mean_degree=None, kinematics=None):
         state_dim, control_dim = check_int(state_dim, "model", "state_dim", 1), check_int(control_dim, "model",

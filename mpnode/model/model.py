@@ -58,14 +58,16 @@ class Model:
                **options):
         """A new model with Glorot-uniform weights and zero biases drawn from ``seed``.
 
-        options : `ModelConfig`'s fields (kind, message_dim, hidden, aggregation, ...), over
-        ``config``'s (default: the defaults).  What the data decide: dt, ``n_nodes`` (a node
-        model's system size) and ``mean_degree`` (the "scaled" aggregation's divisor).
+        options : `ModelConfig`'s fields (kind, message_dim, hidden, aggregation, latent_dims, ...),
+        over ``config``'s (default: the defaults).  What the data decide: ``state_dim`` (the data's
+        dimensions: the model's state adds its latent ones), dt, ``n_nodes`` (a node model's
+        system size) and ``mean_degree`` (the "scaled" aggregation's divisor).
         """
         config = configured(options, config)
         spec = config.spec(state_dim, control_dim, dt, n_nodes, mean_degree)
         seed = check_int(seed, "Model.create", "seed", 0)
-        return cls(layouts.glorot_init(spec, seed=seed, dtype=np.dtype(config.dtype)), spec, attrs={"seed": seed})
+        attrs = {"seed": seed, **({"latent_dims": config.latent_dims} if config.latent_dims else {})}
+        return cls(layouts.glorot_init(spec, seed=seed, dtype=np.dtype(config.dtype)), spec, attrs=attrs)
 
     @classmethod
     def load(cls, path):

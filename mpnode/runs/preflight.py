@@ -52,8 +52,7 @@ def _check_run(p, model, parent_data, load, prepared, where):
     if key not in prepared:  # runs on the same data and split share the checks of their data
         prepared[key] = TrainingData([load(f) for f in p.data], config, [os.path.relpath(f) for f in p.data])
     first = datasets[0]
-    dx = first.state_dim + model.latent_dims  # the model's state: the data's and its latent dimensions
-    spec = model.spec(dx, first.control_dim, first.dt, first.n_nodes if model.kind == "node" else None,
+    spec = model.spec(first.state_dim, first.control_dim, first.dt, first.n_nodes if model.kind == "node" else None,
                       1.0 if model.uses_mean_degree else None)
     check_training_memory(spec, prepared[key], config, model.dtype)
     return warnings

@@ -58,12 +58,14 @@ def split_options(options, source="options"):
 
 
 def new_model(data, config, train_config=None):
-    """A fresh model of ``config`` (a ModelConfig) for the system of ``data`` (a TrainingData): its
-    dx, du and dt, a node model its N, and from the training split the normalisation and, for
-    the "scaled" aggregation, the mean in-degree.  InputError first when training it under
+    """A fresh model of ``config`` (a ModelConfig) for the system of ``data`` (a TrainingData, its
+    trajectories with room for the config's latent dimensions: `with_latent_dims`): its dx, du
+    and dt, a node model its N, and from the training split the normalisation and, for the
+    "scaled" aggregation, the mean in-degree.  InputError first when training it under
     ``train_config`` (default: the defaults) would need more memory than the machine has."""
     train_config = train_config or TrainConfig()
     first = data.datasets[0]
+    dx = first.state_dim - config.latent_dims  # the data's own: the model adds its latent dimensions
     n_nodes = None
     if config.kind == "node":
         sizes = {t.n_nodes for t in data.datasets}
@@ -72,12 +74,10 @@ def new_model(data, config, train_config=None):
                              "one node count for a plain neural ODE (kind node)")
         n_nodes = sizes.pop()
     mean_degree = data.mean_in_degree(config.self_messages) if config.uses_mean_degree else None
-    spec = config.spec(first.state_dim, first.control_dim, first.dt, n_nodes, mean_degree)
+    spec = config.spec(dx, first.control_dim, first.dt, n_nodes, mean_degree)
     check_training_memory(spec, data, train_config, config.dtype)
-    model = Model.create(first.state_dim, first.control_dim, dt=first.dt, seed=train_config.seed, n_nodes=n_nodes,
+    model = Model.create(dx, first.control_dim, dt=first.dt, seed=train_config.seed, n_nodes=n_nodes,
                          mean_degree=mean_degree, config=config)
-    if config.latent_dims:
-        model.attrs["latent_dims"] = config.latent_dims
     x_mean, x_std, u_mean, u_std = data.normalization()
     model.x_mean, model.x_std = x_mean, x_std
     if u_mean is not None:
@@ -87,6 +87,12 @@ def new_model(data, config, train_config=None):
 
 def read_all(paths):
     return [read_trajectories(p) for p in paths]
+
+
+def with_latent_dims(datasets, config):
+    """``datasets`` with room for the latent dimensions of ``config`` (a ModelConfig): never
+    observed, so the recipe and the split see them as the model will."""
+    return [t.with_hidden_dims(config.latent_dims) for t in datasets]
 
 
 def _attrs(paths, datasets, **more):
@@ -128,8 +134,7 @@ def train(paths, output, options=None, *, recipe_name="auto", resume=False, prog
     datasets = datasets or read_all(paths)
     if resume:
         check_resume_options(state_path(output), canonical(options))
-    latent = int(canonical(options).get("latent_dims", 0) or 0)
-    datasets = [t.with_hidden_dims(latent) for t in datasets]
+    datasets = with_latent_dims(datasets, split_options(options)[0])
     options, chosen = with_recipe(options, recipe_name, datasets)
     model_config, config = split_options(options)
     one_model(config)

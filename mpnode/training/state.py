@@ -134,7 +134,8 @@ def check_resume_options(path, options):
     state = load_state(path)
     config = json.loads(str(state["config"]))
     spec = FieldSpec.from_attrs(json.loads(str(state["spec"])))
-    model = model_config_of(spec, state["theta"].dtype)
+    latent = int(json.loads(str(state["model_attrs"])).get("latent_dims", 0))
+    model = model_config_of(spec, state["theta"].dtype, latent)
     for name, value in options.items():
         if name in RESUME_OPTIONS:
             continue
@@ -149,8 +150,9 @@ def check_resume_options(path, options):
                              "--epochs and --time-limit change), or another -o to start a new run")
 
 
-def model_config_of(spec, dtype):
-    """The ModelConfig that makes ``spec`` (with weights of ``dtype``)."""
+def model_config_of(spec, dtype, latent_dims=0):
+    """The ModelConfig that makes ``spec`` (with weights of ``dtype``; ``latent_dims`` of its
+    state dimensions beyond the data's)."""
     from mpnode.model.config import ModelConfig
 
     agg = spec.aggregation
@@ -158,7 +160,7 @@ def model_config_of(spec, dtype):
                        linear_aggregate=spec.linear_path, linear_aggregation=agg.own_linear,
                        linear_target=agg.target, self_messages=spec.self_messages,
                        zero_messages=spec.zero_messages, substeps=spec.substeps, dtype=np.dtype(dtype).name,
-                       encoder_window=spec.encoder_window,
+                       encoder_window=spec.encoder_window, latent_dims=latent_dims,
                        kinematics=None if spec.kinematics is None else spec.kinematics.text())
 
 
@@ -166,7 +168,7 @@ def _same_model(model, spec, name, value):
     """Whether setting model option ``name`` to ``value`` leaves the model of ``spec`` as it is."""
     try:
         other = dataclasses.replace(model, **{name: value})
-        again = other.spec(spec.state_dim, spec.control_dim, spec.dt, spec.n_nodes, spec.aggregation.mean_degree)
+        again = other.spec(spec.state_dim - model.latent_dims, spec.control_dim, spec.dt, spec.n_nodes, spec.aggregation.mean_degree)
     except (InputError, TypeError, ValueError):
         return False
     return again == spec and other.dtype == model.dtype
