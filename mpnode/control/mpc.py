@@ -16,6 +16,7 @@ from mpnode import engine
 from mpnode.base.arguments import check_int
 from mpnode.base.errors import InputError
 from mpnode.engine.backend import single_threaded_blas
+from mpnode.model.ensemble import models_of
 from mpnode.model.model import batch_graph, to_time_major
 
 
@@ -100,7 +101,7 @@ class ShootingMPC:
         horizon = check_int(horizon, "ShootingMPC", "horizon", 1)
         iterations = check_int(iterations, "ShootingMPC", "iterations", 1)
         self.model = model.copy(np.float64)
-        self.members = getattr(self.model, "members", [self.model])
+        self.members = models_of(self.model)
         self.graph, self.horizon, self.bounds, self.iterations = graph, horizon, bounds, iterations
         self.messages, self.offset_free = messages, offset_free
         self.info = None  # the last optimisation's cost, iterations, evaluations, seconds

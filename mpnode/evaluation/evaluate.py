@@ -18,6 +18,7 @@ from mpnode.base.errors import InputError, NumericalError
 from mpnode import engine
 from mpnode.data import Trajectories
 from mpnode.model import batch_graph, check_data, ranges
+from mpnode.model.ensemble import Ensemble, models_of
 from mpnode.model.start import fit_initial_state
 
 from . import stepsize
@@ -275,7 +276,7 @@ def inputs_off_range(model, x0, graphs, graph_index, u, horizon, times=None, sta
     seen = model.attrs.get(ranges.KEY)
     if not seen:
         return None
-    model = getattr(model, "members", [model])[0]  # an ensemble: its first member's inputs
+    model = models_of(model)[0]  # an ensemble: its first member's inputs
     return ranges.off_range(seen, ranges.scan(model, x0, graphs, graph_index, u, horizon, times), state_names)
 
 
@@ -285,7 +286,7 @@ def start_states(model, traj, warmup, start="encoder"):
     to them through the engine when ``start`` is "fit" (mpnode.model.start)."""
     if start not in STARTS:
         raise InputError("--start", "start", f"is {start!r}", " or ".join(STARTS))
-    if start == "fit" and hasattr(model, "members"):
+    if start == "fit" and isinstance(model, Ensemble):
         raise InputError("--start", "start", "is fit for an ensemble", "--start encoder (each member's start is "
                          "the members' mean estimate)")
     k = max(int(warmup), 1)
@@ -322,7 +323,7 @@ STARTS = ("encoder", "fit")
 def _timed_rollout(model, x0, traj, u, times, max_nodes):
     """(seconds, predictions, the members' std or None): every trajectory rolled out (an
     ensemble's members each: the predictions are their mean), the compiled kernels loaded first."""
-    first = getattr(model, "members", [model])[0]
+    first = models_of(model)[0]
     rollout_all(first, x0[:1], traj.graphs, traj.graph_index[:1], 1, None if u is None else u[:1, :1],
                 times=None if times is None else times[:1, :2])
     start = time.perf_counter()
@@ -333,10 +334,9 @@ def _timed_rollout(model, x0, traj, u, times, max_nodes):
 def rollout_spread(model, x0, graphs, graph_index, steps, u=None, max_nodes=16384, times=None):
     """(predictions, None) of a Model (`rollout_all`); of an ensemble (its members each rolled
     out), (the members' mean, their standard deviation (ddof 1, float64))."""
-    members = getattr(model, "members", None)
-    if members is None:
+    if not isinstance(model, Ensemble):
         return rollout_all(model, x0, graphs, graph_index, steps, u, max_nodes, times), None
-    stacked = np.stack([rollout_all(m, x0, graphs, graph_index, steps, u, max_nodes, times) for m in members])
+    stacked = np.stack([rollout_all(m, x0, graphs, graph_index, steps, u, max_nodes, times) for m in model.members])
     with np.errstate(all="ignore"):
         return stacked.mean(axis=0), np.std(stacked.astype(np.float64), axis=0, ddof=1)
 

@@ -125,6 +125,12 @@ class Ensemble:
         return out
 
 
+def models_of(model):
+    """The models whose rollouts a prediction of ``model`` runs: an Ensemble's members (it
+    averages them), or the one Model itself."""
+    return list(model.members) if isinstance(model, Ensemble) else [model]
+
+
 def coverage(truth, mean, spread, band):
     """The fraction of the finite ``truth`` values inside the central ``band`` (50 or 90) percent
     band mean +- z * spread (NaN when none is finite)."""

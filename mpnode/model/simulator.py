@@ -14,7 +14,7 @@ from mpnode.base.arguments import check_path
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph, as_graph, is_networkx
 
-from .ensemble import Ensemble
+from .ensemble import Ensemble, models_of
 from .model import Model, batch_graph, node_intervals, to_time_major
 from .ranges import Watch
 
@@ -41,7 +41,7 @@ class Simulator:
         if not isinstance(model, (Model, Ensemble)):
             model = Model.load(check_path(model, "Simulator", "model"))
         self.model = model
-        self._models = getattr(model, "members", [model])
+        self._models = models_of(model)
         self.graph = _as_graph(graph)
         self.model.check_nodes(self.graph.n_nodes)
         if backend not in engine.BACKENDS:
@@ -122,8 +122,8 @@ class Simulator:
 
         self._require_reset()
         m, spec = self.model, self.model.spec
-        if len(self._models) > 1:
-            raise InputError("Simulator.jacobians", "model", f"is an ensemble of {len(self._models)} members",
+        if isinstance(m, Ensemble):
+            raise InputError("Simulator.jacobians", "model", f"is an ensemble of {m.size} members",
                              "one model (an ensemble's members each have their own state: e.g. "
                              "Simulator(ensemble.members[0], graph))")
         un = self._controls(u, "Simulator.jacobians")

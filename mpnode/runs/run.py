@@ -15,6 +15,7 @@ from mpnode.data import read_trajectories
 from mpnode.engine import numba_problem
 from mpnode.model import Model
 from mpnode.model.config import ModelConfig, configured
+from mpnode.model.ensemble import Ensemble
 from mpnode.model.provenance import system_mismatch
 from mpnode.model.ranges import KEY as RANGES
 from mpnode.model.ranges import training_ranges
@@ -173,7 +174,7 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=None, recipe
     if resume:
         check_resume_options(state_path(output), options)
     model = None if resume else Model.load(model_path)
-    if hasattr(model, "members"):
+    if isinstance(model, Ensemble):
         raise InputError(model_path, "ensemble_size", f"is an ensemble of {model.size} models",
                          "mpnode.runs.ensemble.train_ensemble (the command line: finetune --ensemble K)")
     if model is not None:
