@@ -18,7 +18,6 @@ import numpy as np
 from mpnode.base.errors import InputError
 from mpnode.model import Model
 from mpnode.model.ensemble import Ensemble, fitted_scale
-from mpnode.training import TrainConfig
 from mpnode.training.batches import TrainingData
 
 from . import run as runs
@@ -28,25 +27,18 @@ from .executors import open_executor
 TRAINING_SHARE = 0.93
 
 
-def members_of(options):
-    """K, the number of members ``options`` ask for (1: one model)."""
-    return int(runs.canonical(options).get("ensemble", 1) or 1)
-
-
 def train_ensemble(paths, output, options, *, recipe_name="auto", scheduler=None, notify=None, datasets=None,
                    names=None, parent=None, refit_norm=False):
     """Train ``options["ensemble"]`` = K >= 2 members on ``paths`` into the ensemble file ``output``
     (fine-tune them from the model file ``parent`` when given: an ensemble's members each from
     its own, one model's from it); returns (Ensemble, [member's TrainResult summary])."""
     options = runs.canonical(options)
-    k = members_of(options)
+    config = runs.split_options(options)[1]  # K, the seed and the budget are the run's options, checked
+    k, seed = config.ensemble, config.seed
     if k < 2:
-        raise InputError("--ensemble", str(k), "is fewer than 2 members", "K >= 2 (1: one model, not an ensemble)")
-    if options.get("resume"):
-        raise InputError("--resume", "resume", "cannot continue an ensemble", "a new run (members train afresh)")
+        raise InputError("options", "ensemble", f"is {k}", "K >= 2 members (1: one model, mpnode.runs.train)")
     datasets = datasets or runs.read_all(paths)
     names = list(map(str, names or paths))
-    seed = int(options.get("seed", TrainConfig.seed))
     parents = _parents(parent, k)
     if parent is None:
         options, chosen = runs.with_recipe(options, recipe_name, datasets)
@@ -54,8 +46,8 @@ def train_ensemble(paths, output, options, *, recipe_name="auto", scheduler=None
     with open_executor(scheduler, workers=k, one_thread=True) as farm:
         waves = math.ceil(k / max(1, farm.workers))
         share = {}
-        if options.get("time_limit"):
-            share["time_limit"] = options["time_limit"] * TRAINING_SHARE / waves
+        if config.time_limit is not None:
+            share["time_limit"] = config.time_limit * TRAINING_SHARE / waves
         if notify:
             notify(f"ensemble: {k} members in {waves} wave(s) on {farm.workers} worker(s)"
                    + (f", {share['time_limit']:.0f} s each" if share else ""))
@@ -116,8 +108,7 @@ def calibration(ensemble, datasets, names, options, notify=None):
     true values (their rollouts from the first observation, steps 1..T); 1 without validation data."""
     from mpnode.evaluation.evaluate import evaluate, subset
 
-    model_options = {k: v for k, v in options.items() if k in runs.TRAIN_OPTIONS}
-    data = TrainingData(datasets, TrainConfig(**model_options).check(), names)
+    data = TrainingData(datasets, runs.split_options(options)[1], names)
     truth, mean, std = [], [], []
     for traj, (_, val), name in zip(data.datasets, data.split, names):
         if len(val):
