@@ -7,11 +7,12 @@ import tempfile
 import click
 
 from mpnode.base.errors import InputError, NumericalError
-from mpnode.base.options import aliases
+from mpnode.base.options import aliases, switches
 from mpnode.engine.spec import AGGREGATIONS, KINDS, LINEAR_TARGETS
 from mpnode.model.config import DTYPES, ModelConfig
 from mpnode.training import TrainConfig
-from mpnode.training.config import DEFAULT_EPOCHS, epoch_cap
+from mpnode.training.config import DEFAULT_EPOCHS, SCHEDULES, epoch_cap, parse_curriculum
+from mpnode.training.losses import LOSSES
 from mpnode.training.recipes import AUTO_ALL, FINETUNE_AUTO
 
 from .eval_cmd import check_plot, plot_option
@@ -33,6 +34,12 @@ def flags(cls, name):
     return [f"--{n.replace('_', '-')}" for n in (name, *aliases(cls, name))] + [name]
 
 
+def switch_flags(cls, name):
+    """The flag of the switch of option ``name`` (e.g. --clip-global for clip_mode), and its key."""
+    key = next(k for k, (option, _) in switches(cls).items() if option == name)
+    return [f"--{key.replace('_', '-')}", key]
+
+
 class Duration(click.ParamType):
     """--time-limit: minutes, or a number with s, m or h."""
 
@@ -48,65 +55,64 @@ class Duration(click.ParamType):
 
 
 def training_options(f):
-    """The optimisation flags shared by train and finetune; defaults are TrainConfig's."""
+    """The optimisation flags shared by train and finetune; defaults are TrainConfig's, and so are
+    the checks of their values (`checked`): a flag here only parses."""
     d = DEFAULT
     options = [
-        click.option("--epochs", type=click.IntRange(min=0), default=d.epochs,
+        click.option("--epochs", type=int, default=d.epochs,
                      help=f"Passes over the training trajectories.  Default: {DEFAULT_EPOCHS}, or with --time-limit as "
                           "many as the time limit allows (it is the budget)."),
         click.option("--time-limit", type=Duration(),
                      help="Stop cleanly after this long (best model and checkpoint saved): minutes, or 90s, 1.5h."),
-        click.option("--batch-size", type=click.IntRange(min=1), default=d.batch_size,
+        click.option("--batch-size", type=int, default=d.batch_size,
                      help="Trajectories per batch (each batch from one file: one block-diagonal graph).  Default: "
                           f"the recipe's (auto: {AUTO_ALL['batch_size']} to train an MP-NODE or L2S model, "
                           f"{FINETUNE_AUTO['batch_size']} to fine-tune an MP-NODE model; otherwise and with "
                           f"--recipe paper: {d.batch_size})."),
-        click.option("--lr", type=click.FloatRange(min=0, min_open=True), default=d.lr, show_default=True,
-                     help="Adam learning rate."),
-        click.option("--beta1", type=click.FloatRange(0, 1, max_open=True), default=d.beta1, show_default=True),
-        click.option("--beta2", type=click.FloatRange(0, 1, max_open=True), default=d.beta2, show_default=True),
-        click.option("--eps", type=click.FloatRange(min=0), default=d.eps, show_default=True, help="Adam epsilon."),
-        click.option("--clip", type=click.FloatRange(min=0), default=d.clip, show_default=True,
+        click.option("--lr", type=float, default=d.lr, show_default=True, help="Adam learning rate (> 0)."),
+        click.option("--beta1", type=float, default=d.beta1, show_default=True, help="Adam beta1, in [0, 1)."),
+        click.option("--beta2", type=float, default=d.beta2, show_default=True, help="Adam beta2, in [0, 1)."),
+        click.option("--eps", type=float, default=d.eps, show_default=True, help="Adam epsilon."),
+        click.option("--clip", type=float, default=d.clip, show_default=True,
                      help="Gradient clip norm, applied to each parameter array separately (0: no clipping)."),
-        click.option("--clip-global", is_flag=True, help="Clip by one norm over all parameters instead."),
-        click.option("--val-split", type=click.FloatRange(0, 1, max_open=True), default=d.val_split,
-                     show_default=True, help="Fraction of every file's trajectories held out for validation "
-                     "(random, seeded)."),
-        click.option("--noise", type=click.FloatRange(min=0), default=d.noise, show_default=True,
+        click.option(*switch_flags(TrainConfig, "clip_mode"), is_flag=True,
+                     help="Clip by one norm over all parameters instead."),
+        click.option("--val-split", type=float, default=d.val_split, show_default=True,
+                     help="Fraction in [0, 1) of every file's trajectories held out for validation (random, seeded)."),
+        click.option("--split-seed", type=int, help="Seed of the train/validation split.  Default: --seed."),
+        click.option("--noise", type=float, default=d.noise, show_default=True,
                      help="Std of the Gaussian noise added once to the normalised training states."),
-        click.option("--loss", type=click.Choice(["huber", "mse"]), default=d.loss, show_default=True),
-        click.option("--patience", type=click.IntRange(min=1), default=d.patience, show_default=True,
+        click.option("--loss", type=click.Choice(list(LOSSES)), default=d.loss, show_default=True),
+        click.option("--patience", type=int, default=d.patience, show_default=True,
                      help="Epochs without a new best validation loss before the learning rate is cut."),
-        click.option("--lr-decay", type=click.FloatRange(0, 1, min_open=True), default=d.lr_decay, show_default=True,
-                     help="Factor applied to the learning rate at each cut."),
-        click.option("--min-lr", type=click.FloatRange(min=0), default=d.min_lr, show_default=True,
+        click.option("--lr-decay", type=float, default=d.lr_decay, show_default=True,
+                     help="Factor in (0, 1] applied to the learning rate at each cut."),
+        click.option("--min-lr", type=float, default=d.min_lr, show_default=True,
                      help="No cut once the learning rate is at or below this."),
-        click.option("--max-bad-steps", type=click.IntRange(min=1), default=d.max_bad_steps, show_default=True,
-                     help="Stop after this many bad steps (non-finite or blown-up) without a new best."),
-        click.option("--schedule", type=click.Choice(["plateau", "cosine"]), default=d.schedule, show_default=True,
+        click.option("--schedule", type=click.Choice(SCHEDULES), default=d.schedule, show_default=True,
                      help="Learning rate: plateau (cut by --lr-decay after --patience epochs without a new best) or "
                           "cosine (from --lr down to --min-lr over --epochs, or over --time-limit when that comes "
                           "first)."),
-        click.option("--val-graphs", type=click.IntRange(min=0), default=d.val_graphs, show_default=True,
+        click.option("--val-graphs", type=int, default=d.val_graphs, show_default=True,
                      help="Hold out this many whole graphs of every file that has more, for validation: the best "
                           "model is then the one that does best on graphs it was not trained on."),
         click.option("--seed", type=int, default=d.seed, show_default=True,
                      help="Seed of the initial weights, the split, the noise and the shuffles."),
-        click.option("--substeps", type=click.IntRange(min=1), help="RK4 steps per dt (train default 1; "
+        click.option("--substeps", type=int, help="RK4 steps per dt (train default 1; "
                      "finetune default: the model's)."),
-        click.option(*flags(TrainConfig, "curriculum"), callback=_parse_curriculum, metavar="W1,W2,...,full",
+        click.option(*flags(TrainConfig, "curriculum"), callback=parsed_by(parse_curriculum), metavar="W1,W2,...,full",
                      help="Train first on windows of W1 steps, then W2, ..., then the full horizon (e.g. 5,10,full; "
                           "'full' is implied at the end).  Each trajectory is cut into consecutive windows, each "
                           "starting from its true state; validation stays on the full horizon."),
-        click.option("--curriculum-epochs", type=click.IntRange(min=1), default=d.curriculum_epochs,
+        click.option("--curriculum-epochs", type=int, default=d.curriculum_epochs,
                      show_default=True, help="Epochs per window length of --curriculum (the full horizon "
                      "gets the rest)."),
-        click.option("--input-noise", type=click.FloatRange(min=0), default=d.input_noise, metavar="STD",
+        click.option("--input-noise", type=float, default=d.input_noise, metavar="STD",
                      help="Std of Gaussian noise, drawn afresh every epoch, added to the initial state of every "
                      "training rollout (normalised units; the targets stay clean): the model learns to come back "
                      "towards the data from states a little off them, as its own long rollouts are.  "
                      f"Default: the recipe's ({d.input_noise:g} unless the README's recipe table says otherwise)."),
-        click.option("--train-window", type=click.IntRange(min=0), default=d.train_window, metavar="W",
+        click.option("--train-window", type=int, default=d.train_window, metavar="W",
                      help="Train on windows of W steps (after any --curriculum) while the model is still chosen "
                      "by its validation error over the files' full horizon (0: train on the full horizon).  "
                      "Default: the recipe's (0 unless the README's recipe table says otherwise)."),
@@ -123,11 +129,30 @@ def training_options(f):
     return f
 
 
+def safeguard_options(f):
+    """--max-bad-steps, --blowup and --checkpoint-seconds (train and finetune): what a run does
+    about steps that blow up and how much of it a kill can lose; defaults and checks TrainConfig's."""
+    d = DEFAULT
+    options = [
+        click.option("--max-bad-steps", type=int, default=d.max_bad_steps, show_default=True,
+                     help="Stop after this many bad steps (non-finite or blown-up) without a new best."),
+        click.option("--blowup", type=float, default=d.blowup, show_default=True, metavar="FACTOR",
+                     help="A step whose batch loss exceeds FACTOR times the initial validation loss is bad: skipped, "
+                          "the weights back to the best epoch's and the learning rate halved (0: only non-finite "
+                          "steps are bad)."),
+        click.option("--checkpoint-seconds", type=float, default=d.checkpoint_seconds, show_default=True,
+                     help="Save the best model and the checkpoint at most this often (and at the end)."),
+    ]
+    for opt in reversed(options):
+        f = opt(f)
+    return f
+
+
 def ensemble_options(f):
     """--ensemble and --bootstrap (train and finetune); --time-limit is then the ensemble's."""
     d = DEFAULT
     options = [
-        click.option("--ensemble", type=click.IntRange(min=1), default=d.ensemble, show_default=True, metavar="K",
+        click.option("--ensemble", type=int, default=d.ensemble, show_default=True, metavar="K",
                      help="Train K models (members: seeds SEED, SEED+1, ...; one validation split) into one file, "
                           "in parallel (a process each on this machine, or on Dask with --scheduler).  Their "
                           "spread says how far to trust a prediction: `mpnode eval` reports it, calibrated on "
@@ -150,35 +175,39 @@ def recipe_option(paper):
                              f"see the README's recipe table) or paper ({paper}).")
 
 
-def _parse_curriculum(ctx, param, value):
-    """'5,10,full' -> (5, 10): increasing window lengths in steps; 'full' only last (and implied)."""
-    if value is None:
-        return ()
-    items = [v.strip().lower() for v in value.split(",") if v.strip()]
-    if items and items[-1] == "full":
-        items = items[:-1]
-    windows = []
-    for v in items:
+def parsed_by(parse):
+    """A click callback that parses a flag's text with the library's ``parse`` (its InputError,
+    click's usage error naming the flag as the user typed it)."""
+    def callback(ctx, param, value):
         try:
-            w = int(v)
-        except ValueError:
-            raise click.BadParameter(f"{v!r} is not a window length (an integer >= 1, or 'full' at the end)")
-        if w < 1 or (windows and w <= windows[-1]):
-            raise click.BadParameter(f"window lengths must be increasing integers >= 1, got {value!r}")
-        windows.append(w)
-    return tuple(windows)
+            return parse(value)
+        except InputError as e:
+            raise click.BadParameter(f"{e.problem} (expected {e.expected})") from None
+
+    return callback
 
 
 def given_options(o, skip=("output", "resume", "trajectories", "recipe", "plot", "scheduler")):
-    """The library's options (runs.split_options' names) the user set: flags left at their
-    defaults are not passed, so the recipe and the library's defaults fill them."""
+    """The library's options (runs.split_options' names; a switch such as clip_global under its
+    own) the user set, checked by the library: flags left at their defaults are not passed, so
+    the recipe and the library's defaults fill them."""
     from click.core import ParameterSource
 
     ctx = click.get_current_context()
-    options = {k: v for k, v in o.items() if k not in skip and v is not None
-               and ctx.get_parameter_source(k) not in (None, ParameterSource.DEFAULT)}
-    if options.pop("clip_global", False):
-        options["clip_mode"] = "global"
+    return checked({k: v for k, v in o.items() if k not in skip and v is not None
+                    and ctx.get_parameter_source(k) not in (None, ParameterSource.DEFAULT)})
+
+
+def checked(options):
+    """``options`` if the library takes them (runs.split_options, before any work); its InputError
+    names the option's flag."""
+    from mpnode.runs.run import OPTION_NAMES, split_options
+
+    try:
+        split_options(options)
+    except InputError as e:
+        source = "--" + e.field.replace("_", "-") if e.field in OPTION_NAMES else e.source
+        raise InputError(source, e.field, e.problem, e.expected) from None
     return options
 
 
@@ -285,9 +314,9 @@ def print_validation(result):
 @click.option(*flags(ModelConfig, "kind"), type=click.Choice(KINDS), default=MODEL_DEFAULT.kind, show_default=True,
               help="mpnode: one module per node with learned messages (runs on any graph); l2s: the paper's "
                    "graph-network ODE baseline (any graph); node: one neural ODE for the whole system (its N only).")
-@click.option("--message-dim", type=click.IntRange(min=0), default=MODEL_DEFAULT.message_dim, show_default=True,
+@click.option("--message-dim", type=int, default=MODEL_DEFAULT.message_dim, show_default=True,
               help="Message size: the number of learned message variables each node carries (mpnode only).")
-@click.option("--hidden", type=click.IntRange(min=1), default=MODEL_DEFAULT.hidden, show_default=True,
+@click.option("--hidden", type=int, default=MODEL_DEFAULT.hidden, show_default=True,
               help="Hidden width: units in each of the network's two tanh layers.")
 @click.option(*flags(ModelConfig, "aggregation"), type=click.Choice(AGGREGATIONS),
               help="How a node combines what its neighbours send: mean (the paper's), sum, or scaled (the sum over "
@@ -309,12 +338,12 @@ def print_validation(result):
 @click.option("--self-messages", is_flag=True,
               help="Every node also hears its own message (the Julia code's 'full' graph for Lorenz).")
 @click.option("--dtype", type=click.Choice(DTYPES), default=MODEL_DEFAULT.dtype, show_default=True)
-@click.option("--encoder-window", type=click.IntRange(min=0), metavar="W",
+@click.option("--encoder-window", type=int, metavar="W",
               help="Learn, with the model, an initial-state encoder that estimates each trajectory's whole "
                    "starting state from its first W observations: values nobody measured (a dimension that is "
                    "NaN throughout the data is such a hidden state) and noise on the measured ones; 0: start "
                    "from the first observation as it is.  Default: the recipe's.")
-@click.option("--latent-dims", type=click.IntRange(min=0), metavar="K",
+@click.option("--latent-dims", type=int, metavar="K",
               help="Give each node K more state dimensions than the data have, never observed: room for what "
                    "the data do not show (the initial-state encoder estimates where they start).")
 @click.option("--kinematics", metavar="TERMS",
@@ -328,6 +357,7 @@ def print_validation(result):
               help=f"Only when DATA is a scene: trajectories to generate (default {SCENE_TRAJECTORIES}; a scene set: "
                    "each member's own count, or this many for each).")
 @training_options
+@safeguard_options
 @ensemble_options
 @scheduler_option
 def train_cmd(data, trajectories, recipe, **o):
@@ -363,6 +393,7 @@ def train_cmd(data, trajectories, recipe, **o):
 
     runs.require_numba()
     output, plot = o["output"], o["plot"]
+    options = given_options(o)  # checked before any data are generated
     scene = _scene_of(data)
     if scene is None:
         check_outputs(output, data, plot=plot)
@@ -375,7 +406,6 @@ def train_cmd(data, trajectories, recipe, **o):
         if not (o["resume"] and all(map(os.path.exists, data))):
             for s, path in zip(scenes, data):
                 _generate(s, path)
-    options = given_options(o)
     if scene is not None and o["time_limit"] is None:
         options["time_limit"] = runs.parse_duration(SCENE_SET_TIME_LIMIT if scene in SETS else SCENE_TIME_LIMIT)
     datasets = runs.read_all(data)
@@ -483,6 +513,7 @@ def _evaluate_on_fresh(scene, model, output, seed):
                    "(auto: refit for the quadrotor swarm, keep otherwise; paper: keep).")
 @recipe_option("the paper's training settings: plateau schedule, batch 128")
 @training_options
+@safeguard_options
 @ensemble_options
 @scheduler_option
 def finetune_cmd(model_file, data, refit_norm, recipe, **o):

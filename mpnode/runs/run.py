@@ -2,7 +2,8 @@
 the sweeps and the paper suite, so that each of them trains a model the same way.
 
 Options are one dict of the model's options (`ModelConfig`'s fields) and the training's
-(`TrainConfig`'s, ``time_limit`` in seconds), each under its name or an older one.  What the
+(`TrainConfig`'s, ``time_limit`` in seconds), each under its name, an older one or a switch
+of it (``clip_global``: True is ``clip_mode`` "global").  What the
 options leave unset comes from a recipe (mpnode.training.recipes: ``auto``, the best measured
 for the data's system, or ``paper``), then from the defaults.
 """
@@ -10,7 +11,7 @@ import os
 
 from mpnode.base.arguments import check_bool, check_mapping, check_path, check_paths
 from mpnode.base.errors import InputError
-from mpnode.base.options import defaults, option_names
+from mpnode.base.options import defaults, option_names, switches
 from mpnode.data import read_trajectories
 from mpnode.engine import numba_problem
 from mpnode.model import Model
@@ -30,16 +31,23 @@ MODEL_OPTIONS = defaults(ModelConfig)
 TRAIN_OPTIONS = defaults(TrainConfig)
 #: every name an option is known by (older names too) -> the option
 OPTION_NAMES = {**option_names(ModelConfig), **option_names(TrainConfig)}
+#: the keys that switch an option to one value -> (the option, the value)
+SWITCHES = {**switches(ModelConfig), **switches(TrainConfig)}
 
 
 def canonical(options, source="options"):
-    """``options`` with every key under its option's name; InputError names an unknown key."""
+    """``options`` with every key under its option's name (a switch set: its option at its
+    value; left false: nothing); InputError names an unknown key."""
     out = {}
     for key, value in (options or {}).items():
-        if key not in OPTION_NAMES:
+        if key in SWITCHES:
+            if check_bool(value, source, key):
+                out[SWITCHES[key][0]] = SWITCHES[key][1]
+        elif key in OPTION_NAMES:
+            out[OPTION_NAMES[key]] = value
+        else:
             raise InputError(source, key, "is not a training option",
-                             "one of " + ", ".join(sorted(MODEL_OPTIONS) + sorted(TRAIN_OPTIONS)))
-        out[OPTION_NAMES[key]] = value
+                             "one of " + ", ".join(sorted(MODEL_OPTIONS) + sorted(TRAIN_OPTIONS) + sorted(SWITCHES)))
     return out
 
 
@@ -207,11 +215,11 @@ def with_ranges(result, datasets, output):
     return result
 
 
-def one_model(config):
+def one_model(config, source="options"):
     """InputError for ``ensemble`` > 1: `train` and `finetune` make one model (a sweep key or an
     options dict asking for more would otherwise be dropped silently)."""
     if config.ensemble > 1:
-        raise InputError("options", "ensemble", f"is {config.ensemble}", "1 here; K members into one file: "
+        raise InputError(source, "ensemble", f"is {config.ensemble}", "1 here; K members into one file: "
                          "mpnode.runs.ensemble.train_ensemble (mpnode train --ensemble K)")
 
 

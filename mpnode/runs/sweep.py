@@ -38,11 +38,11 @@ from mpnode.base.atomic import atomic_path
 from mpnode.base.errors import InputError
 from mpnode.base.tomlfile import load_toml
 from mpnode.training import recipes, state_path
-from mpnode.training.config import DEFAULT_EPOCHS
+from mpnode.training.config import DEFAULT_EPOCHS, parse_curriculum
 from mpnode.training.log import log_path
 
 from .preflight import check_out_folder, check_runs
-from .run import MODEL_OPTIONS, OPTION_NAMES, parse_duration, split_options
+from .run import MODEL_OPTIONS, OPTION_NAMES, canonical, one_model, parse_duration, split_options
 
 #: what a sweep file may hold at its top level
 TOP_KEYS = ("data", "test", "test_points", "recipe", "train", "grid", "run")
@@ -132,7 +132,7 @@ def _check_plan(p, path):
     """InputError for a run that cannot run as declared (its options, its test points)."""
     p.test = list(p.test or [])
     where = f"run {p.name}"
-    split_options(p.options, f"{path}: {where}")
+    one_model(split_options(p.options, f"{path}: {where}")[1], f"{path}: {where}")  # a run is one model
     points = p.test_points or 0
     if isinstance(points, bool) or not isinstance(points, int) or points < 0:
         raise InputError(path, f"{where}.test_points", f"is {points!r}", "a whole number of evaluations >= 0")
@@ -223,16 +223,11 @@ def _listed_runs(doc, shared, data, recipe, path, folder):
 
 def _options(options, path, where, finetune=False):
     """The options checked now (so a typo fails before any run starts), in mpnode.runs' form."""
-    options = dict(options)
+    options = canonical(options, f"{path}: {where}")
     if "time_limit" in options:
         options["time_limit"] = parse_duration(options["time_limit"], f"{path}: {where}.time_limit")
-    if isinstance(options.get("curriculum"), str):
-        windows = [w.strip() for w in options["curriculum"].split(",") if w.strip() and w.strip() != "full"]
-        options["curriculum"] = windows
-    if isinstance(options.get("curriculum"), list):
-        options["curriculum"] = tuple(options["curriculum"])
-    if options.pop("clip_global", False):
-        options["clip_mode"] = "global"
+    if "curriculum" in options:
+        options["curriculum"] = parse_curriculum(options["curriculum"], f"{path}: {where}")
     if finetune:
         fixed = sorted(k for k in options if k in MODEL_OPTIONS and k != "substeps")
         if fixed:

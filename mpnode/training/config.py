@@ -1,6 +1,7 @@
 """`TrainConfig`: every option of a training run besides the model and the data, its defaults
 and its checks (the command line's training flags and the sweep's keys are these fields)."""
 import math
+import numbers
 from dataclasses import dataclass
 
 from mpnode.base.arguments import check_bool, check_int, check_number
@@ -52,7 +53,7 @@ class TrainConfig:
     beta2: float = 0.999
     eps: float = 1e-8
     clip: float = 500.0
-    clip_mode: str = "per-array"
+    clip_mode: str = option("per-array", switches={"clip_global": "global"})
     val_split: float = 0.3
     noise: float = 1e-4
     loss: str = "huber"
@@ -81,13 +82,7 @@ class TrainConfig:
             raise InputError("training options", name, problem, expected)
 
         self._check_types()
-        try:
-            windows = tuple(int(w) for w in self.curriculum)
-        except (TypeError, ValueError):
-            windows = (0,)
-        if any(w < 1 for w in windows) or any(isinstance(w, (bool, float)) for w in self.curriculum):
-            bad("curriculum", f"is {self.curriculum!r}", "window lengths >= 1 (steps), e.g. (5, 10)")
-        self.curriculum = windows
+        self.curriculum = parse_curriculum(self.curriculum)
         if self.curriculum_epochs < 1:
             bad("curriculum_epochs", f"is {self.curriculum_epochs}", "an integer >= 1")
 
@@ -152,8 +147,27 @@ class TrainConfig:
                 raise InputError(where, name, f"is {getattr(self, name)}", "a number in [0, 1)")
         if self.time_limit is not None:
             self.time_limit = check_number(self.time_limit, where, "time_limit", positive=True)
-        if not isinstance(self.curriculum, (tuple, list)):
-            raise InputError(where, "curriculum", f"is {self.curriculum!r}", "a list of window lengths, e.g. (5, 10)")
+
+
+def parse_curriculum(value, source="training options"):
+    """The window lengths of a curriculum: increasing integers >= 1 (steps), from a sequence
+    ((5, 10)) or the command line's text ("5,10,full": "full", the full horizon, only last and
+    implied); None: none.  InputError for anything else."""
+    items = [v.strip().lower() for v in value.split(",") if v.strip()] if isinstance(value, str) else value
+    if items is None:
+        return ()
+    if not isinstance(items, (tuple, list)):
+        raise InputError(source, "curriculum", f"is {value!r}", "window lengths, e.g. (5, 10) or \"5,10,full\"")
+    items = list(items[:-1]) if items and items[-1] == "full" else list(items)
+    windows = []
+    for w in items:
+        if isinstance(w, str) and w.isascii() and w.isdigit():
+            w = int(w)
+        if not (isinstance(w, numbers.Integral) and not isinstance(w, bool) and w >= 1 and w > max(windows, default=0)):
+            raise InputError(source, "curriculum", f"is {value!r}",
+                             "increasing window lengths >= 1 (steps), e.g. (5, 10) or \"5,10,full\"")
+        windows.append(int(w))
+    return tuple(windows)
 
 
 def curriculum_stage(config, epoch):
