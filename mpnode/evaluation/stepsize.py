@@ -12,7 +12,8 @@ The rule of `choose_substeps` (``mpnode eval/simulate --substeps auto``):
 - probe: the first ``probe_steps`` output steps (default min(T, 20)) of up to
   ``sample`` trajectories (default 32, spread evenly over the batch; fewer for large
   graphs, at most ~MAX_PROBE_NODES = 4096 nodes in all), rolled out in
-  float64 (so the estimate measures truncation error, not float32 round-off);
+  float64 on the NumPy path (so the estimate measures truncation error, not float32
+  round-off, and no float64 kernels are compiled for it);
 - error measure: ``max |x_s - x_2s| / x_std`` over the probed trajectories, steps,
   nodes and state dimensions, i.e. in the model's normalised units (x_std is the
   training data's per-dimension standard deviation, stored in the model), so
@@ -72,9 +73,11 @@ def _pick(graph, idx):
 
 
 def _rollout(model, substeps, x0, graph, u, steps):
+    """The probe's rollout, on the NumPy path: a few trajectories in float64, which would
+    otherwise compile the float64 kernels (minutes on a cold cache) for a float32 model."""
     m = model.with_spec(substeps=int(substeps))
     with np.errstate(all="ignore"):
-        return m.rollout(x0, graph, u, steps).astype(np.float64)
+        return m.rollout(x0, graph, u, steps, backend="numpy").astype(np.float64)
 
 
 def doubling_estimate(pred_s, pred_2s, x_std):
