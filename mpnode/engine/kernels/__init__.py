@@ -10,7 +10,9 @@ sums), ``mpnode_field`` and ``l2s_field`` (one field each: send, update and thei
 Numba caches each compiled function under its own source file's hash, but a compiled
 driver contains the code of everything it calls from the sibling modules: after an
 edit to ``layers.py`` alone, numba would still serve the drivers compiled with the old
-layers.  So the cache folder of this package is keyed by a digest of all its sources.
+layers.  So the cache folder of this package is keyed by a digest of all its sources.  It
+lives under NUMBA_CACHE_DIR when that is set, else in the user's cache folder (an installed
+package's own folder may be read-only, and a new checkout would compile again).
 """
 import hashlib
 import os
@@ -21,14 +23,23 @@ import numba
 from ..codegen import build_numba_codegen
 
 
+def cache_base():
+    """NUMBA_CACHE_DIR, else the user's cache folder for mpnode (XDG_CACHE_HOME or ~/.cache;
+    LOCALAPPDATA on Windows)."""
+    if numba.config.CACHE_DIR:
+        return numba.config.CACHE_DIR
+    if os.name == "nt" and os.environ.get("LOCALAPPDATA"):
+        return os.path.join(os.environ["LOCALAPPDATA"], "mpnode", "Cache")
+    return os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "mpnode")
+
+
 def _cache_dir():
-    """<NUMBA_CACHE_DIR or this package's __pycache__>/mpnode-kernels-<digest of the sources>."""
+    """<cache_base()>/mpnode-kernels-<digest of the sources>."""
     here = Path(__file__).resolve().parent
     digest = hashlib.sha256()
     for path in sorted(here.glob("*.py")) + [here.parent / "dims.py"]:  # and the dims layout they read
         digest.update(path.name.encode() + path.read_bytes())
-    base = numba.config.CACHE_DIR or str(here / "__pycache__")
-    return os.path.join(base, "mpnode-kernels-" + digest.hexdigest()[:16])
+    return os.path.join(cache_base(), "mpnode-kernels-" + digest.hexdigest()[:16])
 
 
 build_numba_codegen()  # before the first declaration: the vector width it compiles for
