@@ -72,8 +72,10 @@ def main():
     and nodes coordinate through learned messages (MP-NODE).
     """
     from mpnode.engine.codegen import ask_for_wide_vectors
+    from mpnode.engine.compiling import set_announcer
 
     ask_for_wide_vectors()  # the command's process is mpnode's own (mpnode.engine.codegen)
+    set_announcer(lambda message: click.echo(message, err=True))
 
 
 def scheduler_option(f):

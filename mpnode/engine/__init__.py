@@ -9,5 +9,5 @@ points), `jacobians` (one step's Jacobians), `numpy_path` (every kind in plain N
 mpnode.base.  It knows nothing of files, data sets or training.
 """
 from .backend import BACKENDS, numba_problem, resolve_backend  # noqa: F401
-from .rollout import forward, forward_with_vjp, initial_state, integrate, integrate_with_vjp  # noqa: F401
+from .rollout import compile_vjp_ahead, forward, forward_with_vjp, initial_state, integrate, integrate_with_vjp  # noqa: F401
 from .spec import AGGREGATIONS, KINDS, LINEAR_TARGETS, FieldSpec, default_aggregation  # noqa: F401

@@ -23,6 +23,7 @@ import numpy as np
 
 from mpnode.base.graph import Graph
 
+from . import compiling
 from .backend import resolve_backend, single_threaded_blas
 from .plan import plan_for
 from .schedule import time_grid
@@ -94,6 +95,7 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
     zend = np.empty_like(z0)
     g = (plan.csr.indptr, plan.csr.indices, plan.weight)
     kept = None
+    compiling.before_call("rollout_stagewise" if plan.blocks is None else "rollout_blocks", theta.dtype)
     with single_threaded_blas():
         if plan.blocks is None:
             kernels.rollout_stagewise(theta, spec.dims, z0, u, g, nsub, hstep, out, states, zend)
@@ -230,6 +232,8 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
     if spec.kind == "node":
         intervals = _per_system(spec, intervals)
         spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
+    if keep_states:
+        compile_vjp_ahead(spec, np.asarray(theta).dtype, graph, driver, ordering)
     x, states, kept, _, u, grid, plan = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering,
                                              intervals)
     x = x.reshape(shape)
@@ -244,6 +248,14 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
         return (gtheta, gx0.reshape(shape[1:])) + ((gu.reshape(u_shape),) if controls else ())
 
     return x, vjp
+
+
+def compile_vjp_ahead(spec, dtype, graph, driver="auto", ordering="auto"):
+    """Have the VJP driver that ``graph`` needs compile on the other core (`compiling`), if it is
+    not compiled yet, while this process goes on (to compile the rollout's, typically)."""
+    if spec.kind == "node":
+        return  # its systems are one graph of edgeless nodes: both drivers' choice is made later
+    compiling.compile_vjp_ahead(dtype, plan_for(graph, spec, dtype, driver, ordering).blocks is None)
 
 
 def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False):
@@ -263,6 +275,7 @@ def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False):
     gu = np.zeros((n_steps, m if controls else 0, spec.control_dim), dtype=theta.dtype)
     g, gt = (plan.csr.indptr, plan.csr.indices, plan.weight), (tgraph.indptr, tgraph.indices)
     nsub, hstep = grid
+    compiling.before_call("vjp_stagewise" if plan.blocks is None else "vjp_blocks", theta.dtype)
     with single_threaded_blas():
         if plan.blocks is None:
             kernels.vjp_stagewise(theta, spec.dims, u, g, gt, nsub, hstep, states, gx, gthetas, gx0, gu)

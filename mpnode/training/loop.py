@@ -305,6 +305,7 @@ def fit(model, data, config=None, output=None, *, sources=None, resume=False, pr
     state, data = start_state(model, data, config or TrainConfig(), output, resume, sources)
     config = state.config
     train_parts, val_parts = data.parts(state.model, "keep" if resume else config.norm)  # resumed: fitted before
+    _compile_ahead(state.model, train_parts, config)
     validate = Validator(val_parts or train_parts, config.loss)
     attrs = dict(model_attrs or {})
     log = TrainLog(output)
@@ -333,6 +334,15 @@ def fit(model, data, config=None, output=None, *, sources=None, resume=False, pr
     return TrainResult(state.best_model(**attrs, epoch=state.best_epoch, val_loss=state.best_val), status, message,
                        state.best_val, state.best_epoch, state.epoch, state.opt.lr, loop.elapsed(), history,
                        state.best_files if val_parts else [], config, data.split)
+
+
+def _compile_ahead(model, parts, config):
+    """The training step's VJP compiles on the other core while the first validation compiles
+    the rollout (nothing happens when both are compiled: mpnode.engine.compiling)."""
+    part = next((p for p in parts if p.n), None)
+    if part is not None:
+        sel = np.arange(min(config.batch_size, part.n))
+        engine.compile_vjp_ahead(model.spec, model.dtype, part.graph(sel))
 
 
 def start_state(model, data, config, output, resume, sources):

@@ -1,0 +1,161 @@
+"""Compiling the kernels: once per machine, said aloud, and the VJP on the other core.
+
+numba compiles a driver (`kernels.rk4`) the first time it is called for a precision, then keeps
+the machine code in its on-disk cache (`kernels._cache_dir`), so a second run starts at once.
+A first compile takes minutes on a small machine, and training needs two drivers, the rollout
+and its VJP, which numba would compile one after the other.  So `integrate_with_vjp` calls
+`compile_vjp_ahead`: a process of its own compiles the VJP driver into the cache while this one
+compiles the rollout, and the VJP's first call (`before_call`) waits for it and loads what it
+wrote.  Both processes compile the same precision, so the callees' cache entries they both write
+are for the same signatures: whichever lands last is valid.
+
+`set_announcer` lets the command line say what is happening ("compiling the kernels for float32,
+once: ~N s"); the library itself prints nothing.  MPNODE_COMPILE_AHEAD=0 keeps every compile in
+this process.
+"""
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from mpnode.base.atomic import atomic_path
+
+VARIABLE = "MPNODE_COMPILE_AHEAD"
+#: seconds a first compile of a driver took on a 2-core machine, until this machine has its own figure
+DEFAULT_SECONDS = 130.0
+_TIMES_FILE = "mpnode-compile-seconds.json"
+
+_announce = None
+_announced = set()  # the precisions whose compile was announced in this process
+_known = set()  # (driver, dtype) compiled or loaded in this process
+_pending = {}  # (driver, dtype) -> (process, its log file, start time)
+
+
+def set_announcer(fn):
+    """``fn(message)`` is told, once per precision, that the kernels are being compiled (None: silence)."""
+    global _announce
+    _announce = fn
+
+
+def before_call(name, dtype):
+    """Called before each call of driver ``name`` in ``dtype``: wait for its compile in the other
+    process if one runs, and announce a compile here the first time it has to happen."""
+    key = (name, np.dtype(dtype).name)
+    if key in _known:
+        return
+    _wait(key)
+    if not is_compiled(name, dtype) and _announce is not None and key[1] not in _announced:
+        _announced.add(key[1])
+        _announce(f"compiling the kernels for {key[1]}, once: ~{estimate(name):.0f} s")
+    _known.add(key)
+
+
+def compile_vjp_ahead(dtype, stagewise):
+    """Start compiling the VJP driver for ``dtype`` in another process unless it is compiled
+    (or ahead-compiling is switched off): the caller goes on to compile the rollout."""
+    name = "vjp_stagewise" if stagewise else "vjp_blocks"
+    key = (name, np.dtype(dtype).name)
+    if key in _known or key in _pending or os.environ.get(VARIABLE, "1") == "0":
+        return
+    if is_compiled(name, dtype):
+        _known.add(key)
+        return
+    log = tempfile.TemporaryFile("w+")
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", __name__, key[1], "stagewise" if stagewise else "blocks"],
+                                stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+    except OSError:  # no interpreter to start (an embedded Python): compile here, in turn
+        log.close()
+        return
+    _pending[key] = (proc, log, time.perf_counter())
+
+
+def _wait(key):
+    if key not in _pending:
+        return
+    proc, log, t0 = _pending.pop(key)
+    with log:
+        if proc.wait() == 0:
+            _record(key[0], time.perf_counter() - t0)
+
+
+def is_compiled(name, dtype):
+    """Is driver ``name`` compiled for ``dtype`` in this process or in numba's on-disk cache?"""
+    from numba import types
+
+    from .kernels import rk4
+
+    disp = getattr(rk4, name)
+    want = types.float32 if np.dtype(dtype) == np.float32 else types.float64
+    if any(sig[0].dtype == want for sig in getattr(disp, "signatures", [])):
+        return True
+    try:
+        magic = disp.targetctx.codegen().magic_tuple()
+        index = disp._cache._cache_file._load_index()
+        return any(key[1] == magic and key[0][0].dtype == want for key in index)
+    except Exception:  # numba's cache layout is private: when it cannot be read, assume a compile
+        return False
+
+
+def estimate(name):
+    """Seconds a first compile of driver ``name`` took here before (DEFAULT_SECONDS if never)."""
+    return _times().get(name, DEFAULT_SECONDS)
+
+
+def _times():
+    try:
+        with open(_times_path()) as f:
+            return {k: float(v) for k, v in json.load(f).items()}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return {}
+
+
+def _record(name, seconds):
+    """Remember how long ``name`` took to compile, for the next estimate (best effort: a
+    read-only cache folder just keeps the default)."""
+    times = _times()
+    times[name] = round(seconds, 1)
+    try:
+        os.makedirs(os.path.dirname(_times_path()), exist_ok=True)
+        with atomic_path(_times_path()) as tmp, open(tmp, "w") as f:
+            json.dump(times, f)
+    except OSError:
+        pass
+
+
+def _times_path():
+    from .kernels import cache_base
+
+    return os.path.join(cache_base(), _TIMES_FILE)
+
+
+def compile_vjp(dtype, driver):
+    """One tiny VJP through driver ``"blocks"`` or ``"stagewise"`` in ``dtype``, from stand-in
+    states (the reverse pass's types are all that matter here): numba compiles the VJP driver
+    and its callees into the on-disk cache, and the rollout driver is never called."""
+    from mpnode.base.graph import Graph
+
+    from .layouts import n_params
+    from .plan import plan_for
+    from .rollout import _reverse, _stage_caches
+    from .schedule import time_grid
+    from .spec import FieldSpec, checked_controls
+
+    spec = FieldSpec(state_dim=2, message_dim=2, hidden=4, dt=0.1)
+    theta = np.zeros(n_params(spec), dtype)
+    graph = Graph.from_edges(3, [(0, 1), (1, 2)])
+    plan = plan_for(graph, spec, theta.dtype, driver)
+    grid = time_grid(spec, 1, 3, theta.dtype, None)
+    u = checked_controls(spec, graph, None, 1, 3, theta.dtype)
+    n_states = int(grid[0].sum()) + 1
+    states = np.zeros((n_states, 3, spec.state_width), dtype)
+    kept = _stage_caches(spec, n_states - 1, 3, theta) if driver == "blocks" else None
+    _reverse(spec, theta, plan, u, grid, states, kept, np.zeros((2, 3, spec.state_dim), dtype))
+
+
+if __name__ == "__main__":
+    compile_vjp(np.dtype(sys.argv[1]), sys.argv[2])

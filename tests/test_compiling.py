@@ -1,0 +1,69 @@
+"""Compiling the kernels: the VJP compiled ahead in a process of its own, announced once, timed."""
+import json
+
+import numpy as np
+import pytest
+
+from mpnode.base.graph import Graph
+from mpnode.engine import compiling, forward_with_vjp
+from mpnode.model import Model
+
+
+@pytest.fixture
+def fresh_state(monkeypatch, tmp_path):
+    """compiling's per-process memory emptied, its figures file in tmp_path."""
+    monkeypatch.setattr(compiling, "_known", set())
+    monkeypatch.setattr(compiling, "_announced", set())
+    monkeypatch.setattr(compiling, "_pending", {})
+    monkeypatch.setattr(compiling, "_times_path", lambda: str(tmp_path / "seconds.json"))
+    said = []
+    monkeypatch.setattr(compiling, "_announce", said.append)
+    return said
+
+
+def _tiny_vjp():
+    model = Model.create(state_dim=2, message_dim=2, hidden=4, dt=0.1)
+    graph = Graph.from_edges(3, [(0, 1), (1, 2)])
+    x, vjp = forward_with_vjp(model.spec, model.theta, np.zeros((3, 2), np.float32), graph, None, 2)
+    return vjp(np.ones_like(x))
+
+
+def test_a_driver_that_is_not_compiled_compiles_ahead_in_another_process_and_is_announced_once(
+        fresh_state, monkeypatch):
+    _tiny_vjp()  # compiled or loaded here: the process started below then only loads the cache
+    monkeypatch.setattr(compiling, "_known", set())
+    started = []
+    popen = compiling.subprocess.Popen
+    monkeypatch.setattr(compiling.subprocess, "Popen", lambda *a, **k: started.append(a[0]) or popen(*a, **k))
+    monkeypatch.setattr(compiling, "is_compiled", lambda name, dtype: False)
+    gtheta, gx0 = _tiny_vjp()
+    assert len(started) == 1 and started[0][-2:] == ["float32", "blocks"]
+    assert not compiling._pending  # the VJP waited for it
+    assert fresh_state == ["compiling the kernels for float32, once: ~130 s"]
+    assert np.isfinite(gtheta).all() and np.abs(gtheta).sum() > 0
+    seconds = json.loads(open(compiling._times_path()).read())
+    assert set(seconds) == {"vjp_blocks"} and seconds["vjp_blocks"] > 0
+    assert compiling.estimate("vjp_blocks") == seconds["vjp_blocks"]  # the next estimate is this machine's
+
+
+def test_compiled_drivers_start_nothing_and_say_nothing(fresh_state, monkeypatch):
+    _tiny_vjp()
+    monkeypatch.setattr(compiling, "_known", set())
+    monkeypatch.setattr(compiling.subprocess, "Popen", lambda *a, **k: pytest.fail("started a process"))
+    assert compiling.is_compiled("vjp_blocks", np.float32) and compiling.is_compiled("rollout_blocks", np.float32)
+    _tiny_vjp()
+    assert fresh_state == []
+
+
+def test_compiling_ahead_can_be_switched_off(fresh_state, monkeypatch):
+    monkeypatch.setenv(compiling.VARIABLE, "0")
+    monkeypatch.setattr(compiling, "is_compiled", lambda name, dtype: False)
+    monkeypatch.setattr(compiling.subprocess, "Popen", lambda *a, **k: pytest.fail("started a process"))
+    compiling.compile_vjp_ahead(np.float32, stagewise=False)
+    assert not compiling._pending
+
+
+def test_an_unreadable_figures_file_gives_the_default_estimate(fresh_state):
+    with open(compiling._times_path(), "w") as f:
+        f.write("not json")
+    assert compiling.estimate("rollout_blocks") == compiling.DEFAULT_SECONDS
