@@ -7,7 +7,9 @@ rate of a large GEMM *measured in the same run* (the training step counts 3x the
 forward) -- and our ratio to it.  Medians of >= 7 timed calls after warm-up; float32 and
 2 threads unless told otherwise.  ``recomp``: the training step with every step's stages
 recomputed in the reverse pass, over the step with the forward's stage caches kept (the
-engine's choice up to rollout.KEEP_CACHES_BYTES), measured in the same process.
+engine's choice up to rollout.KEEP_CACHES_BYTES), measured in the same process.  Each JSON row
+names its machine (``machine``: the CPU's model and vector extensions, the BLAS, the threads)
+beside the GEMM rate it was measured against.
 
 Large graphs (rollout only, B = 1, T = 50; each case in a fresh process so that its
 memory peak is its own): R200k and S6, random 6-regular graphs of 200,000 and 1,000,000
@@ -40,6 +42,34 @@ from mpnode.engine import FieldSpec, forward, rollout
 from mpnode.engine.codegen import ask_for_wide_vectors
 from mpnode.engine.layouts import glorot_init
 from mpnode.training.losses import value_and_grad
+
+
+def machine():
+    """Which machine a figure came from: the CPU's model and vector extensions, the BLAS numpy
+    calls (for the GEMM floor) and the threads the kernels run on."""
+    import platform
+
+    from threadpoolctl import threadpool_info
+
+    from mpnode.engine.backend import n_threads
+
+    flags, model = set(), platform.processor()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name":
+                    model = value.strip()
+                elif key.strip() == "flags":
+                    flags = set(value.split())
+    except OSError:
+        pass
+    vectors = [f for f in ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512vl", "avx512_bf16", "amx_tile")
+               if f in flags]
+    blas = [{k: lib.get(k) for k in ("internal_api", "version", "architecture", "num_threads")}
+            for lib in threadpool_info() if lib.get("user_api") == "blas"]
+    return {"cpu": model, "cores": os.cpu_count(), "vector_extensions": vectors, "blas": blas,
+            "numba_threads": n_threads()}
 
 
 def random_regular(d, n, seed=0):
@@ -189,7 +219,7 @@ def run_case(case, kind, dtype, gflops, profile=False, batch=None):
          "train_recomputed_ms": round(recomputed, 3), "recomputed_over_kept": round(recomputed / train, 2),
          "first_call_s": round(max(first_r, first_t) if not big else first_r, 2),
          "rss_before_mb": round(rss_before), "peak_rss_mb": round(peak) if exact_peak else None,
-         "rollout_output_mb": round(x.nbytes / 2**20)}
+         "rollout_output_mb": round(x.nbytes / 2**20), "machine": machine()}
     if profile:
         r.update(stage_profile(case, kind, spec, theta, x[0], graph, ordering, roll))
     return r
