@@ -11,7 +11,8 @@ from mpnode.model import Model
 
 @pytest.fixture
 def fresh_state(monkeypatch, tmp_path):
-    """compiling's per-process memory emptied, its figures file in tmp_path."""
+    """compiling's per-process memory emptied, its figures file in tmp_path, compiling ahead on."""
+    monkeypatch.setenv(compiling.VARIABLE, "1")
     monkeypatch.setattr(compiling, "_known", set())
     monkeypatch.setattr(compiling, "_announced", set())
     monkeypatch.setattr(compiling, "_pending", {})

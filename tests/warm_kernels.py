@@ -1,42 +1,22 @@
 """Compile the engine's four drivers (rollout and VJP, block and stagewise) for one dtype into
-numba's on-disk cache:  python tests/warm_kernels.py float32 LOCK_FILE
+numba's on-disk cache:  python tests/warm_kernels.py float32
 
 tests/conftest.py runs this once per dtype, the two at once, the first time a test calls the
 compiled kernels (see "Compiling the kernels on both cores" there).  Every model kind and size
 runs the same compiled driver for a dtype, so one tiny rollout and VJP per driver compiles
 everything the suite calls.
 """
+import os
 import sys
 import time
 
 import numpy as np
 
+from mpnode.engine import compiling
+
 #: exit status when numba's cache writes cannot be serialised here: nothing was compiled, and
 #: the tests compile the kernels themselves, as they would without this script
 CANNOT_LOCK = 3
-
-
-def serialise_cache_writes(lock_path):
-    """Make each numba cache write hold an exclusive lock on ``lock_path``.
-
-    numba writes a function's cache by reading its index, adding an entry and rewriting it,
-    with no lock: two processes adding overloads of one function at the same moment can
-    lose an entry or, worse, leave an index entry naming the other's compiled code (numba
-    issue 4807).  The warm-up processes save overloads of the same functions (float32 and
-    float64), so their writes take turns.
-    """
-    import fcntl
-
-    from numba.core.caching import IndexDataCacheFile
-
-    save = IndexDataCacheFile.save
-
-    def locked_save(self, key, data):
-        with open(lock_path, "a") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            return save(self, key, data)  # closing the file releases the lock
-
-    IndexDataCacheFile.save = locked_save
 
 
 def warm(dtype):
@@ -54,10 +34,9 @@ def warm(dtype):
 
 
 if __name__ == "__main__":
-    try:
-        serialise_cache_writes(sys.argv[2])
-    except (ImportError, AttributeError) as e:  # no fcntl (Windows), or a numba whose cache works otherwise
-        print(f"cannot serialise numba's cache writes here ({e}): nothing compiled", file=sys.stderr)
+    os.environ[compiling.VARIABLE] = "0"  # the two precisions already compile at once, one process each
+    if not compiling.serialise_cache_writes():  # no fcntl (Windows); else one lock for every mpnode process
+        print("cannot serialise numba's cache writes here: nothing compiled", file=sys.stderr)
         sys.exit(CANNOT_LOCK)
     start = time.perf_counter()
     warm(np.dtype(sys.argv[1]))

@@ -6,8 +6,10 @@ A first compile takes minutes on a small machine, and training needs two drivers
 and its VJP, which numba would compile one after the other.  So `integrate_with_vjp` calls
 `compile_vjp_ahead`: a process of its own compiles the VJP driver into the cache while this one
 compiles the rollout, and the VJP's first call (`before_call`) waits for it and loads what it
-wrote.  Both processes compile the same precision, so the callees' cache entries they both write
-are for the same signatures: whichever lands last is valid.
+wrote.  numba rewrites a function's cache index with no lock, so two processes saving overloads
+of one function at once can lose an entry or leave one naming the other's code (numba issue
+4807): both processes' cache writes take turns (`serialise_cache_writes`), and where that cannot
+be done (no fcntl) everything compiles here, in turn.
 
 `set_announcer` lets the command line say what is happening ("compiling the kernels for float32,
 once: ~N s"); the library itself prints nothing.  MPNODE_COMPILE_AHEAD=0 keeps every compile in
@@ -33,6 +35,7 @@ _announce = None
 _announced = set()  # the precisions whose compile was announced in this process
 _known = set()  # (driver, dtype) compiled or loaded in this process
 _pending = {}  # (driver, dtype) -> (process, its log file, start time)
+_lock_path = None  # the file every cache write of this process locks, once `serialise_cache_writes` ran
 
 
 def set_announcer(fn):
@@ -64,6 +67,8 @@ def compile_vjp_ahead(dtype, stagewise):
     if is_compiled(name, dtype):
         _known.add(key)
         return
+    if not serialise_cache_writes():
+        return
     log = tempfile.TemporaryFile("w+")
     try:
         proc = subprocess.Popen([sys.executable, "-m", __name__, key[1], "stagewise" if stagewise else "blocks"],
@@ -72,6 +77,35 @@ def compile_vjp_ahead(dtype, stagewise):
         log.close()
         return
     _pending[key] = (proc, log, time.perf_counter())
+
+
+def serialise_cache_writes(lock_path=None):
+    """Make each of this process's numba cache writes hold an exclusive lock on ``lock_path``
+    (default: one file in the cache folder, shared by every mpnode process); False where file
+    locks are not to be had (no fcntl)."""
+    global _lock_path
+    try:
+        import fcntl
+
+        from numba.core.caching import IndexDataCacheFile
+    except ImportError:
+        return False
+    if _lock_path is None:
+        save = IndexDataCacheFile.save
+
+        def locked_save(self, key, data):
+            with open(_lock_path, "a") as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)
+                return save(self, key, data)  # closing the file releases the lock
+
+        IndexDataCacheFile.save = locked_save
+    if lock_path is None:
+        from .kernels import cache_base
+
+        os.makedirs(cache_base(), exist_ok=True)
+        lock_path = os.path.join(cache_base(), "mpnode-cache-writes.lock")
+    _lock_path = lock_path
+    return True
 
 
 def _wait(key):
@@ -158,4 +192,5 @@ def compile_vjp(dtype, driver):
 
 
 if __name__ == "__main__":
+    serialise_cache_writes()
     compile_vjp(np.dtype(sys.argv[1]), sys.argv[2])
