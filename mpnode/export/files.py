@@ -18,6 +18,7 @@ def export_file(model_path, output, graph_path=None, nodes=None, steps=None, cla
     writing anything; then calls ``claim()`` if given (the command's lock on ``output``).
     """
     from mpnode.model import Model
+    from mpnode.model.ensemble import Ensemble
 
     ext = os.path.splitext(os.fspath(output))[1].lower()
     if ext not in FORMATS:
@@ -37,7 +38,7 @@ def export_file(model_path, output, graph_path=None, nodes=None, steps=None, cla
     if claim is not None:
         claim()
     model = Model.load(model_path)
-    if hasattr(model, "members"):
+    if isinstance(model, Ensemble):
         raise InputError(model_path, "ensemble_size", f"is an ensemble of {model.size} models",
                          "one model's file (an exported module computes one rollout, not a mean and a spread)")
     graph = _graph(graph_path, nodes)

@@ -17,7 +17,7 @@ import warnings
 import numpy as np
 
 from mpnode import engine
-from mpnode.engine.numpy_path import aggregator, empty_rows
+from mpnode.engine.numpy_path import aggregator, field_arrays, l2s_heard
 
 from .file import SEEN_ATTR as KEY  # the Model.attrs entry holding the ranges (the file's group seen/)
 from .model import batch_graph, node_intervals
@@ -88,20 +88,17 @@ def network_inputs(model, x0, graph, u=None, steps=0, times=None):
 
 def aggregate_inputs(model, flat):
     """(z, u) -> {quantity: (M, c)}: the aggregate inputs of the model's networks, in its units."""
-    spec, p = model.spec, model.params
+    spec = model.spec
     dx = spec.state_dim
     if spec.kind == "node" or (spec.kind == "mpnode" and (spec.zero_messages or not spec.message_dim)):
         return lambda z, u: {}
     mlp = aggregator(spec, flat, np.float64)
     if spec.kind == "l2s":
-        empty = empty_rows(spec, flat)
+        arrays = field_arrays(spec, model.theta.astype(np.float64), flat)
 
         def l2s(z, u):
             u = np.zeros((len(z), spec.control_dim)) if u is None else u
-            xu = np.concatenate([z[:, :dx], u], axis=1)
-            a = mlp(np.tanh(np.tanh(xu @ p["W_lift"] + p["b_lift"]) @ p["W_msg"] + p["b_msg"]))
-            a[empty] = p["psi"]
-            return {"aggregate": a}
+            return {"aggregate": l2s_heard(arrays, z[:, :dx].astype(np.float64), u)[1]}
 
         return l2s
     own = spec.aggregation.own_linear
