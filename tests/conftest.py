@@ -20,6 +20,11 @@ The warm-up cannot stall or change the suite: if a process fails, or has not fin
 WARM_UP_TIMEOUT, it is stopped and the tests compile what they need themselves, as without
 it; the terminal summary says what happened.  The drivers are wrapped here for that only;
 the wrapper passes every call through unchanged.  What it saves: docs/evidence/test-suite.md.
+
+The two tiers: ``pytest`` runs the tests not marked ``slow`` (setup.cfg deselects them), each
+meant to take at most DEFAULT_TIER_SECONDS; ``pytest -m slow`` runs the rest, slow by nature
+(end-to-end runs of the docs and the paper suite, killed and resumed runs, Dask clusters).  The
+terminal summary names any test outside the slow tier that took longer.
 """
 import copy
 import os
@@ -36,7 +41,7 @@ import scipy.linalg
 
 from mpnode.base.graph import Graph
 from mpnode.data import Trajectories, write_trajectories
-from mpnode.engine import rollout
+from mpnode.engine import compiling, rollout
 from mpnode.engine.codegen import ask_for_wide_vectors
 from mpnode.model import Model
 from mpnode.training import batches
@@ -55,6 +60,7 @@ class _KernelWarmUp:
         self.lock = threading.Lock()
         self.started = False
         self.report = None
+        self.seconds = 0.0  # what the warm-up took, until the test it ran in is timed
 
     def wrap(self, fn):
         def call(*args, **kwargs):
@@ -70,7 +76,8 @@ class _KernelWarmUp:
                 self.started = True
                 t0 = time.perf_counter()
                 done, failed = self.compile_both()
-                took = f"{time.perf_counter() - t0:.0f} s"
+                self.seconds = time.perf_counter() - t0
+                took = f"{self.seconds:.0f} s"
                 self.report = (f"numba warm-up: drivers compiled or loaded in {took} ({', '.join(done)})" if not failed
                                else f"numba warm-up FAILED after {took} ({'; '.join(failed)}): the tests compiled "
                                     "what they needed themselves")
@@ -83,7 +90,7 @@ class _KernelWarmUp:
             try:
                 for dtype in ("float64", "float32"):
                     log = open(os.path.join(tmp, dtype + ".log"), "w+")
-                    procs[dtype] = (subprocess.Popen([sys.executable, str(WARM_UP), dtype, os.path.join(tmp, "lock")],
+                    procs[dtype] = (subprocess.Popen([sys.executable, str(WARM_UP), dtype],
                                                      stdin=subprocess.DEVNULL, stdout=log, stderr=log), log)
                 deadline = time.monotonic() + WARM_UP_TIMEOUT
                 for dtype, (proc, log) in procs.items():
@@ -114,15 +121,37 @@ def pytest_configure(config):
     # the kernels compiled as the `mpnode` command compiles them (mpnode.engine.codegen), so that the
     # suite, its warm-up and the commands it starts share one set of compiled code
     ask_for_wide_vectors()
+    # the warm-up compiles every driver ahead, so neither the tests nor the commands they start
+    # compile a VJP in a process of their own (tests/test_compiling.py switches it back on)
+    os.environ[compiling.VARIABLE] = "0"
     from mpnode.engine import kernels
 
     for name in DRIVER_ENTRY_POINTS:
         setattr(kernels, name, _warm_up.wrap(getattr(kernels, name)))
 
 
+#: seconds a test of the default tier may take (its setup and teardown included, the kernel warm-up
+#: not); a slower one is shrunk or marked ``@pytest.mark.slow`` (setup.cfg: run by ``pytest -m slow``)
+DEFAULT_TIER_SECONDS = 15
+_took = {}  # nodeid -> seconds, for the tests not marked slow
+
+
+def pytest_runtest_logreport(report):
+    if "slow" in report.keywords:
+        return
+    took, _warm_up.seconds = report.duration - _warm_up.seconds, 0.0
+    _took[report.nodeid] = _took.get(report.nodeid, 0.0) + took
+
+
 def pytest_terminal_summary(terminalreporter):
     if _warm_up.report:
         terminalreporter.write_line(_warm_up.report)
+    over = sorted(((s, n) for n, s in _took.items() if s > DEFAULT_TIER_SECONDS), reverse=True)
+    if over:
+        terminalreporter.write_line(f"{len(over)} tests outside the slow tier took over {DEFAULT_TIER_SECONDS} s "
+                                    "(shrink them, or mark them @pytest.mark.slow):", yellow=True)
+        for seconds, nodeid in over:
+            terminalreporter.write_line(f"  {seconds:.0f} s {nodeid}")
 
 
 # ---------------------------------------------------------------------------

@@ -1,7 +1,9 @@
 """Running on Dask (mpnode[dist]): executors, `generate --scheduler`, sweeps and their faults.
 
-The Dask tests use a real LocalCluster of two process workers (one thread each) and skip
-when Dask is not installed; the sweep file and the executor's own errors are tested without it.
+The Dask tests use a real LocalCluster of two process workers (one thread each), are in the slow
+tier (`pytest -m slow`) and skip when Dask is not installed; the sweep file, the executor's own
+errors and the command on the local pool are tested without it.  So is a sweep stopped and
+resumed, in the slow tier: it trains thousands of epochs to be stopped in the middle.
 """
 import json
 import os
@@ -31,6 +33,12 @@ try:
 except ImportError:
     HAVE_DASK = False
 needs_dask = pytest.mark.skipif(not HAVE_DASK, reason="Dask not installed (pip install '.[dist]')")
+
+
+def on_dask(test):
+    """A test on a LocalCluster: in the slow tier (a cluster's processes start, import and load the
+    kernels), skipped without Dask."""
+    return pytest.mark.slow(needs_dask(test))
 
 MINIMAL = """
 data = ["train.h5"]      # training files; every run trains on all of them
@@ -143,7 +151,7 @@ def test_test_points_refuse_the_cosine_schedule_a_recipe_chooses(tmp_path):
 
 
 # ---- on a LocalCluster ---------------------------------------------------------------------
-@needs_dask
+@on_dask
 @pytest.mark.parametrize("scene", ["lorenz3", "quad3"])
 def test_generate_on_dask_writes_the_same_file_bit_for_bit(tmp_path, scene):
     args = ["generate", scene, "-B", "7", "-T", "6", "--seed", "3"]
@@ -155,7 +163,7 @@ def test_generate_on_dask_writes_the_same_file_bit_for_bit(tmp_path, scene):
     assert (tmp_path / "pool.h5").read_bytes() == (tmp_path / "dask.h5").read_bytes()
 
 
-@needs_dask
+@on_dask
 def test_a_two_run_sweep_with_a_finetune_child(data, farm, tmp_path):
     sweep = sweep_file(data, "tune.toml", """
 data = ["train.h5"]
@@ -200,7 +208,7 @@ lr = 1e-4
     assert again == [] and tuned.stat().st_mtime_ns == stamp
 
 
-@needs_dask
+@on_dask
 def test_a_failing_run_is_reported_and_the_sweep_goes_on(data, farm, tmp_path):
     (tmp_path / "in").mkdir()
     (tmp_path / "in" / "spoilt.h5").write_bytes((data / "train.h5").read_bytes())
@@ -230,7 +238,7 @@ from = "broken"
     assert not (tmp_path / "runs" / "broken").exists()
 
 
-@needs_dask
+@on_dask
 def test_a_killed_worker_costs_only_a_retry(data, farm, tmp_path):
     sweep = sweep_file(data, "kill.toml", """
 data = ["train.h5"]
@@ -288,7 +296,7 @@ def test_sweep_command_on_the_local_pool(data, tmp_path):
     assert (out / "summary.csv").read_text().splitlines()[2].startswith("broken,completed,")
 
 
-@needs_dask
+@on_dask
 def test_ctrl_c_leaves_every_finished_run_and_a_rerun_continues(data, farm, tmp_path):
     sweep = sweep_file(data, "stop.toml", 'data = ["train.h5"]\n[train]\nepochs = 2\n[grid]\nseed = [0, 1, 2]\n')
 
@@ -351,7 +359,7 @@ def test_test_points_on_the_local_pool(data, tmp_path):
     assert np.array_equal(a.theta, b.theta)
 
 
-@needs_dask
+@on_dask
 def test_test_points_on_dask(data, farm, tmp_path):
     """On Dask the run trains in a temporary folder and the worker sends the points' models back."""
     records = run_sweep(sweep_file(data, "points.toml", POINTS), tmp_path, farm)
@@ -364,6 +372,7 @@ def _default_sigint():
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stop", [signal.SIGKILL, signal.SIGINT], ids=["killed", "ctrl-c"])
 def test_a_stopped_sweep_resumes_its_half_finished_training(data, tmp_path, stop):
     """Killed mid-training (the command and its pool process at once), or stopped by Ctrl-C, a

@@ -244,8 +244,10 @@ def test_training_takes_such_data_as_they_are_and_eval_scores_after_a_warm_up(de
     assert scores[noisy, None] == scores[observations, clean] != scores[observations, None]
 
 
+@pytest.mark.slow
 def test_the_worked_example_runs_as_written(tmp_path, monkeypatch):
     """docs/data-as-they-come.md in one folder: its python, then its commands (a shorter training)."""
+    pytest.importorskip("matplotlib", reason="the example draws a figure: the plot extra is not installed")
     doc = Path(__file__).resolve().parents[1] / "docs" / "data-as-they-come.md"
     blocks = fenced_blocks(doc.read_text())
     assert [lang for lang, _, _ in blocks] == ["python", ""]

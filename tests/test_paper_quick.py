@@ -1,5 +1,6 @@
 """The paper suite's --quick mode end to end (benchmarks/paper): every experiment trains,
-analyses and reports, and the speed-against-error numbers behave as numerics say they must."""
+analyses and reports, and the speed-against-error numbers behave as numerics say they must.
+The run takes minutes: its tests are in the slow tier (`pytest -m slow`)."""
 import json
 import math
 import subprocess
@@ -22,6 +23,7 @@ def quick_run(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_results_has_every_section_and_figure(quick_run):
     text = (quick_run / "RESULTS.md").read_text()
     for title in ("1. Messages matter", "2. Zero-shot to unseen topologies", "3. Zero-shot to more nodes",
@@ -39,6 +41,7 @@ def test_results_has_every_section_and_figure(quick_run):
     assert text.count("Paper's caption") >= 7  # Fig. 2, 3a, 3b, 4, 6a, 6b, 9 quote the paper beside ours
 
 
+@pytest.mark.slow
 def test_tables_set_every_column_beside_the_paper(quick_run):
     tables = (quick_run / "sections" / "exp_tables.md").read_text()
     for cell in ("validation, BA (training graphs)", "test, WS (unseen)", "Lorenz10 ds=50", "Kuramoto ds=50",
@@ -46,6 +49,7 @@ def test_tables_set_every_column_beside_the_paper(quick_run):
         assert cell in tables, cell
 
 
+@pytest.mark.slow
 def test_every_run_completed(quick_run):
     for path in (quick_run / "work" / "runs").glob("*/result.json"):
         res = json.loads(path.read_text())
@@ -53,6 +57,7 @@ def test_every_run_completed(quick_run):
         assert res["epochs"] == res["options"]["epochs"]
 
 
+@pytest.mark.slow
 def test_aggregation_runs_use_the_recipes_aggregations(quick_run):
     numbers = json.loads((quick_run / "results" / "aggregation.json").read_text())
     assert {name: (numbers[name]["aggregation"], numbers[name]["linear_aggregation"]) for name in
@@ -65,11 +70,13 @@ def test_aggregation_runs_use_the_recipes_aggregations(quick_run):
                if isinstance(v, dict))
 
 
+@pytest.mark.slow
 def test_a_plain_node_refuses_a_graph_of_another_size(quick_run):
     numbers = json.loads((quick_run / "results" / "node.json").read_text())
     assert "13" in numbers["refusal"] and "10" in numbers["refusal"]  # kuramoto10's NODE asked for 13 nodes
 
 
+@pytest.mark.slow
 def test_finetune_curves_and_determinism(quick_run):
     numbers = json.loads((quick_run / "results" / "finetune.json").read_text())
     assert set(numbers) == {"lorenz10_50", "lorenz10_100", "lorenz10_500", "gene64", "kuramoto_er_50"}
@@ -88,6 +95,7 @@ def test_finetune_curves_and_determinism(quick_run):
     assert curves[0] == curves[1] == curves[2]
 
 
+@pytest.mark.slow
 def test_speed_against_error_obeys_the_numerics(quick_run):
     numbers = json.loads((quick_run / "results" / "speed.json").read_text())
     assert len(numbers) == 4

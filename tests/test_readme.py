@@ -8,6 +8,8 @@ so the table cannot go stale.  A block no test can run is marked in the README b
 `<!-- not run by tests: REASON -->` on the line before it, and NOT_RUN lists those reasons: a
 new mark fails here until it is listed.
 """
+import ast
+import configparser
 import hashlib
 import re
 from pathlib import Path
@@ -69,7 +71,10 @@ def digest(path):
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+@pytest.mark.slow
 def test_the_readme_runs_as_written_in_one_folder(tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib", reason="the README draws figures: the plot extra is not installed")
+    pytest.importorskip("onnx", reason="the README exports to ONNX: the onnx extra is not installed")
     blocks = readme_blocks()
     assert {reason for _, _, reason in blocks if reason} == NOT_RUN
     trained = None
@@ -104,13 +109,47 @@ def test_the_readme_is_a_short_manual():
 
 def test_ci_runs_the_readme_install_and_test_commands():
     """.ci/run installs from this repository into a fresh venv with exactly the README's
-    commands, so the README's `pytest` skips nothing that CI runs."""
+    commands: the default tier (`pytest`) and the slow tier (`pytest -m slow`), which setup.cfg
+    leaves out of the first; so between them CI runs every test, and nothing a contributor does not."""
     install = [code for _, code, reason in readme_blocks() if reason and reason.startswith("installs")]
     assert len(install) == 1
+    readme = install[0].splitlines()
     ci = (ROOT / ".ci" / "run").read_text().splitlines()
-    for line in install[0].splitlines():
+    for line in readme:
         assert line in ci, f"{line!r} is in the README's install block but not in .ci/run"
     assert "python3 -m venv .venv" in ci
+    tests = [line for line in readme if line.startswith("pytest")]
+    assert tests == ["pytest", "pytest -m slow"]
+    assert [line for line in ci if line.startswith("pytest")] == tests
+    config = configparser.ConfigParser()
+    config.read(ROOT / "setup.cfg")
+    assert '-m "not slow"' in config["tool:pytest"]["addopts"]
+    assert "slow:" in config["tool:pytest"]["markers"]
+
+
+def test_the_slow_tier_has_tests_that_need_no_extra():
+    """`pytest -m slow` must collect a test whatever extras are installed (pytest exits 5 when it
+    collects none): some test is marked slow and nothing else, in a module that skips nothing at import."""
+    def names(node):
+        return {n.attr if isinstance(n, ast.Attribute) else n.id for n in ast.walk(node)
+                if isinstance(n, (ast.Attribute, ast.Name))}
+
+    def mark(decorator):  # pytest.mark.slow -> "slow", @pytest.mark.parametrize(...) -> "parametrize"
+        f = decorator.func if isinstance(decorator, ast.Call) else decorator
+        return f.attr if isinstance(f, ast.Attribute) else f.id
+
+    found = []
+    for path in sorted(Path(__file__).parent.glob("test_*.py")):
+        module = ast.parse(path.read_text())
+        if any(names(n) & {"importorskip", "skip", "pytestmark"} for n in module.body
+               if not isinstance(n, (ast.FunctionDef, ast.ClassDef))):
+            continue
+        for fn in module.body:
+            if isinstance(fn, ast.FunctionDef) and fn.name.startswith("test_"):
+                if {mark(d) for d in fn.decorator_list} - {"parametrize"} == {"slow"} \
+                        and not names(fn) & {"importorskip", "skip"}:
+                    found.append(f"{path.name}::{fn.name}")
+    assert found
 
 
 ISSUE = re.compile(r"\bissues?[ -]?#?\d+", re.IGNORECASE)
