@@ -71,7 +71,8 @@ def compile_vjp_ahead(dtype, stagewise):
         return
     log = tempfile.TemporaryFile("w+")
     try:
-        proc = subprocess.Popen([sys.executable, "-m", __name__, key[1], "stagewise" if stagewise else "blocks"],
+        proc = subprocess.Popen([sys.executable, "-m", "mpnode.engine.precompile", key[1],
+                                 "stagewise" if stagewise else "blocks"],
                                 stdin=subprocess.DEVNULL, stdout=log, stderr=log)
     except OSError:  # no interpreter to start (an embedded Python): compile here, in turn
         log.close()
@@ -165,32 +166,3 @@ def _times_path():
     from .kernels import cache_base
 
     return os.path.join(cache_base(), _TIMES_FILE)
-
-
-def compile_vjp(dtype, driver):
-    """One tiny VJP through driver ``"blocks"`` or ``"stagewise"`` in ``dtype``, from stand-in
-    states (the reverse pass's types are all that matter here): numba compiles the VJP driver
-    and its callees into the on-disk cache, and the rollout driver is never called."""
-    from mpnode.base.graph import Graph
-
-    from .layouts import n_params
-    from .plan import plan_for
-    from .rollout import _reverse, _stage_caches
-    from .schedule import time_grid
-    from .spec import FieldSpec, checked_controls
-
-    spec = FieldSpec(state_dim=2, message_dim=2, hidden=4, dt=0.1)
-    theta = np.zeros(n_params(spec), dtype)
-    graph = Graph.from_edges(3, [(0, 1), (1, 2)])
-    plan = plan_for(graph, spec, theta.dtype, driver)
-    grid = time_grid(spec, 1, 3, theta.dtype, None)
-    u = checked_controls(spec, graph, None, 1, 3, theta.dtype)
-    n_states = int(grid[0].sum()) + 1
-    states = np.zeros((n_states, 3, spec.state_width), dtype)
-    kept = _stage_caches(spec, n_states - 1, 3, theta) if driver == "blocks" else None
-    _reverse(spec, theta, plan, u, grid, states, kept, np.zeros((2, 3, spec.state_dim), dtype))
-
-
-if __name__ == "__main__":
-    serialise_cache_writes()
-    compile_vjp(np.dtype(sys.argv[1]), sys.argv[2])

@@ -1,0 +1,35 @@
+"""The process `compiling.compile_vjp_ahead` starts: ``python -m mpnode.engine.precompile float32 blocks``
+compiles one VJP driver into numba's on-disk cache and exits."""
+import sys
+
+import numpy as np
+
+from mpnode.base.graph import Graph
+
+from .compiling import serialise_cache_writes
+from .layouts import n_params
+from .plan import plan_for
+from .rollout import _reverse, _stage_caches
+from .schedule import time_grid
+from .spec import FieldSpec, checked_controls
+
+
+def compile_vjp(dtype, driver):
+    """One tiny VJP through driver ``"blocks"`` or ``"stagewise"`` in ``dtype``, from stand-in
+    states (the reverse pass's types are all that matter here): numba compiles the VJP driver
+    and its callees into the on-disk cache, and the rollout driver is never called."""
+    spec = FieldSpec(state_dim=2, message_dim=2, hidden=4, dt=0.1)
+    theta = np.zeros(n_params(spec), dtype)
+    graph = Graph.from_edges(3, [(0, 1), (1, 2)])
+    plan = plan_for(graph, spec, theta.dtype, driver)
+    grid = time_grid(spec, 1, 3, theta.dtype, None)
+    u = checked_controls(spec, graph, None, 1, 3, theta.dtype)
+    n_states = int(grid[0].sum()) + 1
+    states = np.zeros((n_states, 3, spec.state_width), dtype)
+    kept = _stage_caches(spec, n_states - 1, 3, theta) if driver == "blocks" else None
+    _reverse(spec, theta, plan, u, grid, states, kept, np.zeros((2, 3, spec.state_dim), dtype))
+
+
+if __name__ == "__main__":
+    serialise_cache_writes()
+    compile_vjp(np.dtype(sys.argv[1]), sys.argv[2])
