@@ -207,7 +207,7 @@ def test_gene_stiff_side_switches_to_radau_and_matches_a_tight_reference():
     the trajectory is integrated with Radau from the same initial state, and it matches a
     Radau rtol = atol = 1e-12 reference to 1e-8 absolute (the states fall from hundreds to ~0).
     """
-    x, redraws, fallback, f = gene_run(1e4, workers=2)
+    x, redraws, fallback, f = gene_run(1e4, B=2, workers=2)  # a trajectory for each worker
     assert fallback.all() and not redraws.any()
     x0 = x[0, 0]
     with pytest.raises(StiffnessDetected, match="more than"):
@@ -217,7 +217,7 @@ def test_gene_stiff_side_switches_to_radau_and_matches_a_tight_reference():
         ref = integrate(f, x[b, 0], 50, 0.05, "Radau", rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(x[b], ref, rtol=0, atol=1e-8)
     # the switch is per trajectory and reproducible: same result with one worker, the same initial states
-    x1, _, fallback1, _ = gene_run(1e4, workers=1)
+    x1, _, fallback1, _ = gene_run(1e4, B=2, workers=1)
     np.testing.assert_array_equal(x1, x)
     np.testing.assert_array_equal(fallback1, fallback)
 
