@@ -40,11 +40,11 @@ def test_a_driver_that_is_not_compiled_compiles_ahead_in_another_process_and_is_
     gtheta, gx0 = _tiny_vjp()
     assert len(started) == 1 and started[0][-2:] == ["float32", "blocks"]
     assert not compiling._pending  # the VJP waited for it
-    assert fresh_state == ["compiling the kernels for float32, once: ~130 s"]
+    assert fresh_state == ["compiling the kernels for float32, once: ~180 s"]
     assert np.isfinite(gtheta).all() and np.abs(gtheta).sum() > 0
     seconds = json.loads(open(compiling._times_path()).read())
     assert set(seconds) == {"vjp_blocks"} and seconds["vjp_blocks"] > 0
-    assert compiling.estimate("vjp_blocks") == seconds["vjp_blocks"]  # the next estimate is this machine's
+    assert compiling.estimate() == seconds["vjp_blocks"]  # the next estimate is this machine's
 
 
 def test_compiled_drivers_start_nothing_and_say_nothing(fresh_state, monkeypatch):
@@ -67,4 +67,4 @@ def test_compiling_ahead_can_be_switched_off(fresh_state, monkeypatch):
 def test_an_unreadable_figures_file_gives_the_default_estimate(fresh_state):
     with open(compiling._times_path(), "w") as f:
         f.write("not json")
-    assert compiling.estimate("rollout_blocks") == compiling.DEFAULT_SECONDS
+    assert compiling.estimate() == compiling.DEFAULT_SECONDS

@@ -27,8 +27,9 @@ import numpy as np
 from mpnode.base.atomic import atomic_path
 
 VARIABLE = "MPNODE_COMPILE_AHEAD"
-#: seconds a first compile of a driver took on a 2-core machine, until this machine has its own figure
-DEFAULT_SECONDS = 130.0
+#: seconds a first run waits for its compile on a 2-core machine (docs/evidence/cold-start.md), until this
+#: machine has its own figure
+DEFAULT_SECONDS = 180.0
 _TIMES_FILE = "mpnode-compile-seconds.json"
 
 _announce = None
@@ -53,7 +54,7 @@ def before_call(name, dtype):
     _wait(key)
     if not is_compiled(name, dtype) and _announce is not None and key[1] not in _announced:
         _announced.add(key[1])
-        _announce(f"compiling the kernels for {key[1]}, once: ~{estimate(name):.0f} s")
+        _announce(f"compiling the kernels for {key[1]}, once: ~{estimate():.0f} s")
     _known.add(key)
 
 
@@ -136,9 +137,10 @@ def is_compiled(name, dtype):
         return False
 
 
-def estimate(name):
-    """Seconds a first compile of driver ``name`` took here before (DEFAULT_SECONDS if never)."""
-    return _times().get(name, DEFAULT_SECONDS)
+def estimate():
+    """Seconds a first compile of a driver took on this machine: the longest recorded (each VJP
+    compiled ahead is timed), else DEFAULT_SECONDS."""
+    return max(_times().values(), default=DEFAULT_SECONDS)
 
 
 def _times():
