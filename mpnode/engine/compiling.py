@@ -19,7 +19,6 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
 import time
 
 import numpy as np
@@ -35,7 +34,7 @@ _TIMES_FILE = "mpnode-compile-seconds.json"
 _announce = None
 _announced = set()  # the precisions whose compile was announced in this process
 _known = set()  # (driver, dtype) compiled or loaded in this process
-_pending = {}  # (driver, dtype) -> (process, its log file, start time)
+_pending = {}  # (driver, dtype) -> (process, start time)
 _lock_path = None  # the file every cache write of this process locks, once `serialise_cache_writes` ran
 
 
@@ -70,15 +69,13 @@ def compile_vjp_ahead(dtype, stagewise):
         return
     if not serialise_cache_writes():
         return
-    log = tempfile.TemporaryFile("w+")
-    try:
+    try:  # a failure there only means this process compiles the VJP itself: nothing to show
         proc = subprocess.Popen([sys.executable, "-m", "mpnode.engine.precompile", key[1],
                                  "stagewise" if stagewise else "blocks"],
-                                stdin=subprocess.DEVNULL, stdout=log, stderr=log)
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError:  # no interpreter to start (an embedded Python): compile here, in turn
-        log.close()
         return
-    _pending[key] = (proc, log, time.perf_counter())
+    _pending[key] = (proc, time.perf_counter())
 
 
 def serialise_cache_writes(lock_path=None):
@@ -113,10 +110,9 @@ def serialise_cache_writes(lock_path=None):
 def _wait(key):
     if key not in _pending:
         return
-    proc, log, t0 = _pending.pop(key)
-    with log:
-        if proc.wait() == 0:
-            _record(key[0], time.perf_counter() - t0)
+    proc, t0 = _pending.pop(key)
+    if proc.wait() == 0:
+        _record(key[0], time.perf_counter() - t0)
 
 
 def is_compiled(name, dtype):
