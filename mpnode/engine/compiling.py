@@ -78,10 +78,10 @@ def compile_vjp_ahead(dtype, stagewise):
     _pending[key] = (proc, time.perf_counter())
 
 
-def serialise_cache_writes(lock_path=None):
-    """Make each of this process's numba cache writes hold an exclusive lock on ``lock_path``
-    (default: one file in the cache folder, shared by every mpnode process); False where file
-    locks are not to be had (no fcntl)."""
+def serialise_cache_writes():
+    """Make each of this process's numba cache writes hold an exclusive lock on one file in the
+    cache folder, shared by every mpnode process; False where file locks are not to be had
+    (no fcntl)."""
     global _lock_path
     try:
         import fcntl
@@ -90,6 +90,10 @@ def serialise_cache_writes(lock_path=None):
     except ImportError:
         return False
     if _lock_path is None:
+        from .kernels import cache_base
+
+        os.makedirs(cache_base(), exist_ok=True)
+        _lock_path = os.path.join(cache_base(), "mpnode-cache-writes.lock")
         save = IndexDataCacheFile.save
 
         def locked_save(self, key, data):
@@ -98,12 +102,6 @@ def serialise_cache_writes(lock_path=None):
                 return save(self, key, data)  # closing the file releases the lock
 
         IndexDataCacheFile.save = locked_save
-    if lock_path is None:
-        from .kernels import cache_base
-
-        os.makedirs(cache_base(), exist_ok=True)
-        lock_path = os.path.join(cache_base(), "mpnode-cache-writes.lock")
-    _lock_path = lock_path
     return True
 
 
@@ -123,7 +121,7 @@ def is_compiled(name, dtype):
 
     disp = getattr(rk4, name)
     want = types.float32 if np.dtype(dtype) == np.float32 else types.float64
-    if any(sig[0].dtype == want for sig in getattr(disp, "signatures", [])):
+    if any(sig[0].dtype == want for sig in disp.signatures):
         return True
     try:
         magic = disp.targetctx.codegen().magic_tuple()

@@ -95,6 +95,8 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
     zend = np.empty_like(z0)
     g = (plan.csr.indptr, plan.csr.indices, plan.weight)
     kept = None
+    if keep_states:  # a VJP follows: its driver compiles on the other core while this one compiles the rollout's
+        compiling.compile_vjp_ahead(theta.dtype, plan.blocks is None)
     compiling.before_call("rollout_stagewise" if plan.blocks is None else "rollout_blocks", theta.dtype)
     with single_threaded_blas():
         if plan.blocks is None:
@@ -232,8 +234,6 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
     if spec.kind == "node":
         intervals = _per_system(spec, intervals)
         spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
-    if keep_states:
-        compile_vjp_ahead(spec, np.asarray(theta).dtype, graph, driver, ordering)
     x, states, kept, _, u, grid, plan = _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering,
                                              intervals)
     x = x.reshape(shape)
@@ -252,9 +252,9 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
 
 def compile_vjp_ahead(spec, dtype, graph, driver="auto", ordering="auto"):
     """Have the VJP driver that ``graph`` needs compile on the other core (`compiling`), if it is
-    not compiled yet, while this process goes on (to compile the rollout's, typically)."""
+    not compiled yet, while this process goes on (a training run's first validation, say)."""
     if spec.kind == "node":
-        return  # its systems are one graph of edgeless nodes: both drivers' choice is made later
+        spec, _, _, graph = _whole_systems(spec, np.zeros((graph.n_nodes, spec.state_dim)), None, graph)
     compiling.compile_vjp_ahead(dtype, plan_for(graph, spec, dtype, driver, ordering).blocks is None)
 
 
