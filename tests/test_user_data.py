@@ -79,7 +79,7 @@ def test_several_graphs_with_graph_index_and_positional_x(tmp_path):
     (dict(graph=[(0, 4)]), "graph", "0..3"),
     (dict(graph=[(0, -1)]), "graph", "0..3"),
     (dict(graph=[(0, 1.5)]), "graph", "integer"),
-    (dict(graph=[(0, 1, 2)]), "graph", "(E, 2)"),
+    (dict(graph=[(0, 1, 2, 3)]), "graph", "(E, 2)"),  # (E, 3) is (sender, receiver, weight)
     (dict(graph=[]), "graph", "np.zeros((0, 2), int)"),
     (dict(graph="ring"), "graph", "edge list"),
     (dict(graph=nx.path_graph(3)), "graph", "3 nodes"),
@@ -171,7 +171,7 @@ GOOD = dict(x=states(), edges=[[0, 1]], dt=0.1, system="s")
     (dict(GOOD, system=3), "system", "string"),
     (dict(GOOD, edges=None), "edges", "no graph"),
     (dict(GOOD, edges=[[0, 4]]), "edges", "0..3"),
-    (dict(GOOD, edges=[[0, 1, 2]]), "edges", "(E, 2)"),
+    (dict(GOOD, edges=[[0, 1, 2, 3]]), "edges", "(E, 2)"),
     (dict(GOOD, edges=[[0.5, 1]]), "edges", "integer"),
     (dict(GOOD, indptr=[0, 1]), "edges", "not both"),
     (dict(GOOD, edges=None, indptr=[0, 1, 2, 2, 2]), "indices", "missing"),
