@@ -80,7 +80,8 @@ class Graph:
         """The same edges with other ``weights`` (E,) (None: unweighted), checked; for fitting code
         that changes the strengths and keeps the wiring.  ``parts`` is dropped: its weights would disagree."""
         graph = Graph(self.indptr, self.indices, self_loops=self.self_loops, weights=weights)
-        check_weights(graph.weights, self.n_edges, "reweighted", "graph/weights")
+        if graph.weighted:
+            check_weights(graph.weights, self.n_edges, "graph", "graph/weights")
         return graph
 
     # ---- constructors -------------------------------------------------
