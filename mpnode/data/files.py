@@ -2,9 +2,10 @@
 
 Version 1 is the regular, fully observed file every mpnode reader knows; version 2 adds
 observation times ``t``, NaN for values not observed, trajectories of different lengths
-and the clean ``truth`` of degraded data.  The writer writes version 1 whenever the data
-need none of that, so older readers keep reading what they can.  h5py is imported inside
-the functions so that `import mpnode` stays light.
+and the clean ``truth`` of degraded data; version 3 adds edge weights and static node
+attributes to what version 2 holds.  The writer writes the lowest version the data need,
+so older readers keep reading what they can.  h5py is imported inside the functions so that
+`import mpnode` stays light.
 """
 
 import numpy as np
@@ -15,12 +16,14 @@ from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph
 from mpnode.base.h5 import H5_DAMAGE, one_line, open_h5, plain_attr
 
-from .rules import RESERVED_ATTRS, needs_version_2, storable_text, validate_trajectories
-from .trajectories import Trajectories
+from .rules import (FIELD_ATTRS, RESERVED_ATTRS, needs_version_2, required_version, storable_text,
+                    validate_trajectories)
+from .trajectories import Trajectories, shared_attrs
 
 FORMAT_NAME = "mpnode.trajectories"
-#: the newest version this reader knows (it reads every earlier one)
-FORMAT_VERSION = 2
+#: the newest version this reader knows (it reads every earlier one; the writer picks the lowest the data need)
+FORMAT_VERSION = 3
+VERSIONS = (1, 2, 3)
 #: the datasets version 2 adds
 VERSION_2_DATASETS = ("t", "truth")
 
@@ -60,16 +63,16 @@ def _read_open_file(f, source):
         raise InputError(source, "format", what,
                          f"the root attribute format = {FORMAT_NAME!r}, as mpnode trajectory files have")
     version = plain_attr(f.attrs.get("format_version"))
-    if isinstance(version, bool) or not isinstance(version, int) or version not in (1, FORMAT_VERSION):
+    if isinstance(version, bool) or not isinstance(version, int) or version not in VERSIONS:
         what = "is missing" if version is None else f"is {version!r}"
-        raise InputError(source, "format_version", what, f"1 or {FORMAT_VERSION}, the versions this reader knows")
+        raise InputError(source, "format_version", what, "1, 2 or 3, the versions this reader knows")
     for name, meaning in (("dt", "the time step, a finite number > 0"), ("system", "a string naming the system")):
         if name not in f.attrs:
             raise InputError(source, name, "is missing", f"a root attribute {name}: {meaning}")
-    attrs = {k: plain_attr(v) for k, v in f.attrs.items() if k not in RESERVED_ATTRS}
+    attrs = {k: plain_attr(v) for k, v in f.attrs.items() if k not in RESERVED_ATTRS + FIELD_ATTRS}
     x = _read_array(f, "x", source)
     u = _read_array(f, "u", source) if "u" in f else None
-    graphs = _read_graphs(f, source)
+    graphs = _read_graphs(f, version, source)
     if "graph_index" in f:
         graph_index = _read_array(f, "graph_index", source)
     elif len(graphs) == 1:
@@ -87,14 +90,38 @@ def _read_open_file(f, source):
             extra[name] = _read_array(f, name, source)
     if "x_std" in f:
         extra["x_std"] = _read_array(f, "x_std", source)
+    extra.update(_read_node_attrs(f, version, x.shape, source))
     traj = Trajectories(x=x, graphs=graphs, dt=plain_attr(f.attrs["dt"]), system=plain_attr(f.attrs["system"]),
                         u=u, graph_index=graph_index, attrs=attrs, params=_read_group(f, "params", source),
                         aux=_read_group(f, "aux", source), **extra)
     return traj, version
 
 
-def _read_graphs(f, source):
-    """The graphs/ group as a list of Graph; names must be 0..G-1 and arrays integer."""
+def _read_node_attrs(f, version, shape, source):
+    """{node_attrs: (B, N, dp), attr_names: list} of a version-3 file (float64 when stored as float32
+    or float64; the shared [N, dp] form broadcast to every trajectory); {} when it has none."""
+    has_attrs, has_names = "node_attrs" in f, "attr_names" in f.attrs
+    if not (has_attrs or has_names):
+        return {}
+    if version < 3:
+        _too_new("node_attrs" if has_attrs else "attr_names", version, source)
+    names = plain_attr(f.attrs.get("attr_names"))
+    out = {"attr_names": [names] if isinstance(names, str) else names}  # one name may be stored as a string
+    if "node_attrs" in f:
+        a = _read_array(f, "node_attrs", source)
+        if a.dtype.kind == "f" and a.dtype.itemsize in (4, 8):  # other dtypes stay, for the rules to name
+            a = a.astype(np.float64, copy=False)
+        out["node_attrs"] = shared_attrs(a, shape, source)
+    return out
+
+
+def _too_new(name, version, source):
+    raise InputError(source, name, f"belongs to format version 3 but the file is format_version {version}",
+                     "format_version 3 (or no such dataset or attribute)")
+
+
+def _read_graphs(f, version, source):
+    """The graphs/ group as a list of Graph; names must be 0..G-1, arrays integer, weights (version 3) float."""
     group = _member(f, "graphs", "group", source)
     names = list(group)
     if not names:
@@ -115,8 +142,21 @@ def _read_graphs(f, source):
         if not isinstance(flag, int) or flag not in (0, 1):  # bool is an int: True/False accepted
             raise InputError(source, where, f"has attribute self_loops = {flag!r}",
                              "self_loops = 1 (self-loops allowed), 0 or absent")
-        graphs.append(Graph(indptr, indices, self_loops=flag == 1))
+        graphs.append(Graph(indptr, indices, self_loops=flag == 1, weights=_read_weights(f, where, version, source)))
     return graphs
+
+
+def _read_weights(f, where, version, source):
+    """graphs/<g>/weights (float64), or None when the graph has none."""
+    name = f"{where}/weights"
+    if name not in f:
+        return None
+    if version < 3:
+        _too_new(name, version, source)
+    w = _read_array(f, name, source)
+    if w.dtype.kind != "f":  # checked before Graph casts to float64
+        raise InputError(source, name, f"has dtype {w.dtype}", "float32 or float64 weights, one per edge")
+    return w
 
 
 def _read_group(f, name, source):
@@ -171,7 +211,8 @@ def _values(ds):
 # ---- writing --------------------------------------------------------------
 
 def write_trajectories(path, traj=None, *, x=None, u=None, graph=None, graph_index=None, dt=None, system=None,
-                       directed=False, attrs=None, params=None, aux=None, t=None, truth=None):
+                       directed=False, attrs=None, params=None, aux=None, t=None, truth=None, node_attrs=None,
+                       attr_names=None):
     """Validate and write trajectories to ``path`` atomically: the complete file or nothing.
 
     Either a `Trajectories` (``write_trajectories(path, traj)``) or plain arrays, e.g.
@@ -179,14 +220,16 @@ def write_trajectories(path, traj=None, *, x=None, u=None, graph=None, graph_ind
     observed at their own times with gaps, ``write_trajectories(path, x=x, t=t, graph=edges,
     system="springs")`` (NaN in x: a value not observed): the keywords are those of
     `Trajectories.from_arrays`.  Every problem is an InputError naming ``path`` and the field.
-    Data that need neither times, missing values nor a truth are written as format version 1.
+    Data that need neither times, missing values nor a truth are written as format version 1;
+    weighted graphs or node attributes (``node_attrs``, ``attr_names``) make it version 3.
     """
     import h5py
 
     path = check_path(path, "write_trajectories")
     traj = _as_trajectories(path, traj, dict(x=x, u=u, graph=graph, graph_index=graph_index, dt=dt, system=system,
-                                             attrs=attrs, params=params, aux=aux, t=t, truth=truth), directed)
-    version = FORMAT_VERSION if needs_version_2(traj) else 1
+                                             attrs=attrs, params=params, aux=aux, t=t, truth=truth,
+                                             node_attrs=node_attrs, attr_names=attr_names), directed)
+    version = required_version(traj)
     with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs.update(format=FORMAT_NAME, format_version=version, dt=float(traj.dt), system=traj.system)
         f["x"] = np.asarray(traj.x)
@@ -196,6 +239,7 @@ def write_trajectories(path, traj=None, *, x=None, u=None, graph=None, graph_ind
         if len(traj.graphs) > 1:
             f["graph_index"] = np.asarray(traj.graph_index, dtype=np.int64)
         _write_graphs(f, traj.graphs)
+        _write_node_attrs(f, traj)
         _write_extras(path, f, traj)
 
 
@@ -222,6 +266,17 @@ def _write_graphs(f, graphs):
         group["indices"] = graph.indices
         if graph.self_loops:
             group.attrs["self_loops"] = 1
+        if graph.weighted:
+            group["weights"] = np.asarray(graph.weights, dtype=np.float64)
+
+
+def _write_node_attrs(f, traj):
+    """node_attrs as [N, dp] when every trajectory has the same, else [B, N, dp]; their names."""
+    if traj.node_attrs is None:
+        return
+    a = np.asarray(traj.node_attrs, dtype=np.float64)
+    f["node_attrs"] = a[0] if (a == a[:1]).all() else a
+    f.attrs["attr_names"] = list(traj.attr_names)
 
 
 def _write_extras(path, f, traj):

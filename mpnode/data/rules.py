@@ -13,6 +13,8 @@ from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph, check_csr
 
 RESERVED_ATTRS = ("format", "format_version", "dt", "system")
+#: root attributes that hold a Trajectories field of their own (stored as attributes in the file)
+FIELD_ATTRS = ("attr_names",)
 #: the most model steps (dt) between two observations: a longer gap would need more RK4 steps than
 #: mpnode.engine.schedule allows in one interval
 MAX_GAP_STEPS = 1000
@@ -49,10 +51,14 @@ def validate_trajectories(traj, source):
             raise InputError(source, "x_std", "has a value < 0", "spreads >= 0 (standard deviations)")
     _check_controls(traj, x.shape, within, source)
     _check_graphs(traj, x.shape, source)
+    _check_node_attrs(traj, x.shape, source)
     for key in traj.attrs:
         if key in RESERVED_ATTRS:
             raise InputError(source, key, "is set in attrs, but it is a format attribute",
                              "dt and system as Trajectories fields; format and format_version are written by mpnode")
+        if key in FIELD_ATTRS:
+            raise InputError(source, key, "is set in attrs, but it names the node attributes",
+                             f"{key}= beside node_attrs=, not in attrs")
     _check_names(traj.attrs.get("state_names"), "state_names", x.shape[3], source)
     _check_names(traj.attrs.get("state_groups"), "state_groups", x.shape[3], source)
     if traj.u is not None:
@@ -64,6 +70,17 @@ def needs_version_2(traj):
     """Whether ``traj`` needs format version 2 (observation times, missing values or a truth);
     anything else is written as version 1, which every reader knows."""
     return traj.t is not None or traj.truth is not None or bool(np.isnan(np.asarray(traj.x)).any())
+
+
+def needs_version_3(traj):
+    """Whether ``traj`` needs format version 3 (edge weights or node attributes)."""
+    return traj.node_attrs is not None or any(g.weighted for g in traj.graphs)
+
+
+def required_version(traj):
+    """The lowest format version that holds ``traj``: 1, 2 or 3.  Writing no newer version than
+    the data need keeps every file readable by as many (older) readers as possible."""
+    return 3 if needs_version_3(traj) else 2 if needs_version_2(traj) else 1
 
 
 def _check_dt_and_system(traj, source):
@@ -142,7 +159,11 @@ def _check_graphs(traj, shape, source):
     for g, graph in enumerate(graphs):
         if not isinstance(graph, Graph):
             raise InputError(source, f"graphs/{g}", f"is a {type(graph).__name__}", "an mpnode.Graph")
-        check_csr(graph.indptr, graph.indices, N, graph.self_loops, source, f"graphs/{g}")
+        check_csr(graph.indptr, graph.indices, N, graph.self_loops, source, f"graphs/{g}", graph.weights)
+        if graph.weighted != graphs[0].weighted:
+            weighted, plain = (g, 0) if graph.weighted else (0, g)
+            raise InputError(source, f"graphs/{plain}", f"has no weights, but graphs/{weighted} has",
+                             "weights on every graph of a set, or on none (give an unweighted graph weights of 1)")
     gi = np.asarray(traj.graph_index)
     if gi.shape != (B,):
         raise InputError(source, "graph_index", f"has shape {gi.shape}",
@@ -155,6 +176,32 @@ def _check_graphs(traj, shape, source):
         raise InputError(source, "graph_index",
                          f"trajectory {b} names graph {gi[b]}, but there are {len(graphs)} graph(s)",
                          f"values in 0..{len(graphs) - 1}")
+
+
+def _check_node_attrs(traj, shape, source):
+    """Static attributes: (B, N, dp) finite floats with dp distinct names."""
+    B, N = shape[0], shape[2]
+    if traj.node_attrs is None:
+        if traj.attr_names is not None:
+            raise InputError(source, "attr_names", "is given, but there are no node_attrs",
+                             "node_attrs (B, N, dp) beside the names, or no attr_names")
+        return
+    a = np.asarray(traj.node_attrs)
+    if a.ndim == 4:
+        raise InputError(source, "node_attrs", f"has shape {a.shape}, 4-D as if it changed in time, but node "
+                         "attributes are static", f"one row per trajectory and node, [B, N, dp] = [{B}, {N}, dp] "
+                         "(what changes in time belongs in x, or in the controls u)")
+    if a.ndim != 3 or a.shape[:2] != (B, N) or a.shape[2] < 1:
+        raise InputError(source, "node_attrs", f"has shape {a.shape}",
+                         f"[B, N, dp] = [{B}, {N}, dp >= 1] to match x (or [N, dp] shared by every trajectory)")
+    _check_float_values(a, "node_attrs", source)
+    if traj.attr_names is None:
+        raise InputError(source, "attr_names", "is missing", f"a list of {a.shape[2]} names, one per attribute")
+    _check_names(traj.attr_names, "attr_names", a.shape[2], source)
+    names = [traj.attr_names] if isinstance(traj.attr_names, str) else list(traj.attr_names)
+    twice = [n for k, n in enumerate(names) if n in names[:k]]
+    if twice:
+        raise InputError(source, "attr_names", f"names {twice[0]!r} twice", "a different name for each attribute")
 
 
 def _inside(a, inside):

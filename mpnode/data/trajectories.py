@@ -4,6 +4,8 @@ Data as they come (docs/trajectory-format.md, version 2): observation times ``t`
 trajectory (regular data have none: the k-th state is at k dt), NaN in ``x`` for a value
 nobody observed, trajectories of different lengths in one set (the shorter ones padded: their
 times end in NaN), and, for data degraded on purpose, the clean ``truth`` behind ``x``.
+Networks as they are (version 3): weighted edges (on the graphs) and static attributes of each
+node (``node_attrs``: a gene's degradation rate, a pendulum's length), named by ``attr_names``.
 `from_arrays` builds one from plain arrays and validates it (mpnode.data.rules).
 """
 from dataclasses import dataclass, field
@@ -38,6 +40,9 @@ class Trajectories:
     attrs : dict -- further root attributes (parameters, seed, solver, tolerances)
     params : dict name -> ndarray -- the `params/` group (system parameters)
     aux : dict name -> ndarray -- the `aux/` group (e.g. the quadrotor load)
+    node_attrs : ndarray, shape (B, N, dp), float64, or None -- static attributes of each node in
+        each trajectory (the same for all: a read-only broadcast of one (N, dp) array)
+    attr_names : list of dp str, or None -- a name for each attribute (required with node_attrs)
     """
 
     x: np.ndarray
@@ -52,6 +57,8 @@ class Trajectories:
     t: np.ndarray = None
     truth: np.ndarray = None
     x_std: np.ndarray = None
+    node_attrs: np.ndarray = None
+    attr_names: list = None
 
     def __post_init__(self):
         if self.graph_index is None:
@@ -76,6 +83,16 @@ class Trajectories:
     @property
     def control_dim(self):
         return 0 if self.u is None else self.u.shape[3]
+
+    @property
+    def attr_dim(self):
+        """dp, the number of static attributes per node (0 without node_attrs)."""
+        return 0 if self.node_attrs is None else np.shape(self.node_attrs)[-1]
+
+    @property
+    def weighted(self):
+        """Whether the graphs carry edge weights (a valid set's graphs all do, or none)."""
+        return any(g.weighted for g in self.graphs)
 
     def graph_of(self, b):
         """The Graph trajectory ``b`` ran on."""
@@ -137,11 +154,12 @@ class Trajectories:
             attrs["state_groups"] = list(attrs["state_groups"]) + ["latent"] * k
         return Trajectories(x=pad(np.asarray(self.x, dtype=np.float64)), graphs=self.graphs, dt=self.dt,
                             system=self.system, u=self.u, graph_index=self.graph_index, attrs=attrs, params=self.params,
-                            aux=self.aux, t=self.t, truth=pad(self.truth))
+                            aux=self.aux, t=self.t, truth=pad(self.truth), node_attrs=self.node_attrs,
+                            attr_names=self.attr_names)
 
     @classmethod
     def from_arrays(cls, x, graph, dt=None, system=None, u=None, graph_index=None, directed=False, attrs=None,
-                    params=None, aux=None, t=None, truth=None, source="arrays"):
+                    params=None, aux=None, t=None, truth=None, node_attrs=None, attr_names=None, source="arrays"):
         """Trajectories from plain arrays (your own simulator's or experiment's), validated.
 
         x : (B, T+1, N, dx) states, x[:, :, i] node i, NaN where a value was not observed;
@@ -149,8 +167,11 @@ class Trajectories:
         t : observation times (B, T+1), or (T+1,) shared by all, or a list of (T_b+1,) arrays;
         None: every dt;  u : (B, T, N, du) controls held between observation times, or None;
         graph : one graph for every trajectory -- an mpnode.Graph, a networkx graph or an
-        edge list of (sender, receiver) pairs (E, 2), undirected unless ``directed`` -- or a
-        list of them with ``graph_index`` (B,) naming each trajectory's;  dt : time between
+        edge list of (sender, receiver) pairs (E, 2) or (sender, receiver, weight) triples (E, 3),
+        undirected unless ``directed`` -- or a list of them with ``graph_index`` (B,) naming each
+        trajectory's (weighted graphs differing only in their weights too; every graph weighted, or
+        none);  node_attrs : static attributes of each node, (B, N, dp) per trajectory or (N, dp)
+        shared by all;  attr_names : their dp names (default "attr 1", ...);  dt : time between
         saved states (with ``t``: default the median interval, the model's step);  system : a
         name for the system;  truth : the clean states behind x, if known;  attrs : further
         root attributes (``state_names``: one name per state dimension, used by the figures;
@@ -167,6 +188,7 @@ class Trajectories:
         t = _times(t, x.shape[:2], source)
         specs, field_of = _graph_specs(graph, source)
         graphs = [as_graph(g, x.shape[2], directed, source, field_of(k)) for k, g in enumerate(specs)]
+        _all_or_none_weighted(graphs, field_of, source)
         if graph_index is None and len(graphs) > 1:
             raise InputError(source, "graph_index", f"is missing, but there are {len(graphs)} graphs",
                              f"an integer array of shape ({x.shape[0]},) naming the graph of each trajectory")
@@ -174,10 +196,49 @@ class Trajectories:
             graph_index = np.asarray(graph_index)
             if graph_index.dtype.kind == "f" and np.all(graph_index == np.round(graph_index)):
                 graph_index = graph_index.astype(np.int64)
+        node_attrs = None if node_attrs is None else shared_attrs(_float64(node_attrs, "node_attrs", source),
+                                                                  x.shape, source)
         traj = cls(x=x, graphs=graphs, dt=_plain_scalar(dt) if dt is not None else _median_interval(t),
                    system=system, u=u, graph_index=graph_index, attrs=attrs, params=params, aux=aux, t=t,
-                   truth=None if truth is None else _float_array(truth, "truth", source))
+                   truth=None if truth is None else _float_array(truth, "truth", source), node_attrs=node_attrs,
+                   attr_names=_attr_names(attr_names, node_attrs))
         return validate_trajectories(traj, source)
+
+
+def shared_attrs(a, shape, source):
+    """Node attributes (B, N, dp) of x's ``shape``: one (N, dp) array is every trajectory's
+    (broadcast, not copied); other shapes are left to the rules, which name what is wrong."""
+    if a.ndim != 2:
+        return a
+    B, N = shape[0], shape[2]
+    if a.shape[0] != N or a.shape[1] < 1:
+        raise InputError(source, "node_attrs", f"has shape {a.shape}",
+                         f"[N, dp] = [{N}, dp >= 1] shared by every trajectory, or [B, N, dp] = [{B}, {N}, dp]")
+    return np.broadcast_to(a, (B,) + a.shape)
+
+
+def _attr_names(names, node_attrs):
+    """The names as a list of str: one string is one name, none given with attributes are
+    "attr 1", "attr 2", ..."""
+    if names is None:
+        if node_attrs is None or np.ndim(node_attrs) != 3:
+            return None
+        return [f"attr {i + 1}" for i in range(np.shape(node_attrs)[2])]
+    if isinstance(names, str):
+        return [names]
+    if isinstance(names, np.ndarray) and names.ndim == 1:
+        return names.tolist()
+    return list(names) if isinstance(names, tuple) else names
+
+
+def _all_or_none_weighted(graphs, field_of, source):
+    """Every graph weighted, or none: an unweighted one among weighted ones is more likely a
+    forgotten weight than edges of weight 1, so it is not guessed."""
+    for k, g in enumerate(graphs):
+        if g.weighted != graphs[0].weighted:
+            weighted, plain = (k, 0) if g.weighted else (0, k)
+            raise InputError(source, field_of(plain), f"has no weights, but {field_of(weighted)} has",
+                             "weights on every graph, or on none (give an unweighted graph weights of 1)")
 
 
 def _padded(x, t, source):
@@ -227,6 +288,12 @@ def _float_array(a, name, source):
     if a.dtype.kind in "iub" or (a.dtype.kind == "f" and a.dtype.itemsize < 4):
         a = a.astype(np.float64)
     return a
+
+
+def _float64(a, name, source):
+    """``a`` as an ndarray, float64 when it holds numbers (static attributes need no other precision)."""
+    a = _float_array(a, name, source)
+    return a.astype(np.float64, copy=False) if a.dtype.kind == "f" else a
 
 
 def _plain_scalar(v):
