@@ -15,7 +15,8 @@ def inspect(file, as_json):
     A trajectory file: every rule of the trajectory format is checked; a valid file
     prints the system, the sizes B (trajectories), T (steps), N (nodes), dx/du
     (state/control size per node), dt, the dtype, every graph with its node and edge
-    count, the stored parameters and other attributes.  A model file: its kind
+    count, the edge weights' range (smallest, largest, share negative) and each node
+    attribute's range, the stored parameters and other attributes.  A model file: its kind
     (mpnode, l2s or node), sizes, aggregation, integration settings, parameter count
     and the attributes training recorded (data, recipe, epoch, validation loss).
     A file that breaks a rule is reported as "Error: FILE: FIELD: problem (expected ...)"
@@ -92,6 +93,18 @@ def _sampling_text(m):
     return lines
 
 
+def _network_text(w, attrs):
+    """The weights' range and each node attribute's, for people (nothing for plain graphs)."""
+    lines = []
+    if w is not None:
+        span = "no edges" if w["min"] is None else f"{w['min']:.4g} to {w['max']:.4g}, {w['negative']:.0%} negative"
+        lines.append(f"weights:     {span}")
+    if attrs:
+        lines.append(f"node attrs:  {len(attrs)} per node")
+        lines += [f"  {name}: {r['min']:.4g} to {r['max']:.4g}" for name, r in attrs.items()]
+    return lines
+
+
 def _text(file, s):
     """The summary as aligned 'label: value' lines for people."""
     lines = [
@@ -108,6 +121,7 @@ def _text(file, s):
         lines.append(f"  graphs/{g}: {info['nodes']} nodes, {info['edges']} directed edges{loops}, "
                      f"used by {used} " + ("trajectory" if used == 1 else "trajectories"))
     lines += _sampling_text(s["sampling"])
+    lines += _network_text(s["weights"], s["node_attrs"])
     for group in ("params", "aux"):
         lines.append(f"{group + ':':<13}" + ("" if s[group] else "none"))
         for name, d in s[group].items():

@@ -1,5 +1,6 @@
-"""What `mpnode inspect` shows of trajectory data: sizes, step, graphs, parameters, and for data
-as they come how regular their times are and how much of each dimension and node was observed."""
+"""What `mpnode inspect` shows of trajectory data: sizes, step, graphs, parameters, for data
+as they come how regular their times are and how much of each dimension and node was observed,
+and for networks as they are the range of the edge weights and of each node attribute."""
 import math
 
 import numpy as np
@@ -28,7 +29,30 @@ def summarize(traj):
         "aux": {name: _describe(a) for name, a in traj.aux.items()},
         "attrs": {key: _jsonable(v) for key, v in traj.attrs.items()},
         "sampling": sampling(traj),
+        "weights": weight_range(traj),
+        "node_attrs": attr_ranges(traj),
     }
+
+
+def weight_range(traj):
+    """The edge weights of every graph: smallest, largest and the share below zero (a sign the
+    user gave, e.g. repression); None for unweighted graphs."""
+    if not traj.weighted:
+        return None
+    w = np.concatenate([g.weights for g in traj.graphs if g.weighted])
+    if not w.size:  # weighted graphs without edges
+        return {"min": None, "max": None, "negative": 0.0}
+    return {"min": float(w.min()), "max": float(w.max()), "negative": round(float(np.mean(w < 0)), 4)}
+
+
+def attr_ranges(traj):
+    """Each node attribute's smallest and largest value over nodes and trajectories, by name
+    ({} without attributes)."""
+    if traj.node_attrs is None:
+        return {}
+    a = np.asarray(traj.node_attrs)
+    return {name: {"min": float(a[..., k].min()), "max": float(a[..., k].max())}
+            for k, name in enumerate(traj.attr_names)}
 
 
 def sampling(traj):
