@@ -18,8 +18,10 @@ atomically (the complete file or nothing).  The keys:
                for key, meaning in KEYS.items()) + """
 
 An edge (s, r) means node r hears node s.  A graph that lists a node with itself
-allows self-loops.  A bad archive stops with exit status 2 and a message naming
-the key and the fix; nothing is written.
+allows self-loops.  Edge weights (weights, or a third column of edges; a negative
+one is kept as it is) and node attributes (node_attrs) make a format version 3
+file.  A bad archive stops with exit status 2 and a message naming the key and
+the fix; nothing is written.
 
 Exit status: 0 written; 2 bad archive or option (also: OUTPUT being written by
 another run); 4 the system refused (OUTPUT could not be written: permission, full
@@ -46,7 +48,10 @@ def convert(file, output, dt, system):
     s = summarize(traj)
     click.echo(f"wrote {output}: {s['system']}, B={s['B']}, T={s['T']}, N={s['N']}, dx={s['dx']}, du={s['du']}, "
                f"dt={s['dt']:g}, {len(s['graphs'])} graph(s) with "
-               + ", ".join(str(g["edges"]) for g in s["graphs"]) + " directed edges")
+               + ", ".join(str(g["edges"]) for g in s["graphs"]) + " directed edges"
+               + (", weighted" if traj.weighted else ""))
+    if traj.attr_dim:
+        click.echo(f"node attributes: {', '.join(traj.attr_names)}")
     layout = ("state_names", "state_groups", "control_names", "t0")
     for group, keys in (("root attributes", [k for k in traj.attrs if k not in layout]), ("aux/", list(traj.aux))):
         if keys:

@@ -1,5 +1,6 @@
 """Trajectory data: the `Trajectories` object, its rules and HDF5 file format
-(docs/trajectory-format.md: version 1, regular and complete; version 2, data as they come),
+(docs/trajectory-format.md: version 1, regular and complete; version 2, data as they come;
+version 3, weighted edges and node attributes),
 `.npz` import (`mpnode convert`) and the summary `mpnode inspect` shows.
 
 Owns: `trajectories`, `rules`, `files`, `npz`, `summary`.  May import: mpnode.base.

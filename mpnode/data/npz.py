@@ -15,7 +15,7 @@ import zlib
 import numpy as np
 
 from mpnode.base.errors import InputError
-from mpnode.base.graph import Graph, as_graph, check_csr
+from mpnode.base.graph import Graph, as_graph, check_csr, check_weights
 from mpnode.base.h5 import one_line
 
 from .trajectories import Trajectories
@@ -29,19 +29,26 @@ KEYS = {
     "t": "(T+1,) or (B, T+1) float: times of the saved states, shared or per trajectory, strictly increasing; "
          "NaN at the end of a shorter trajectory (optional; evenly spaced times give dt)",
     "system": "string: a name for the system (required unless --system gives it)",
-    "edges": "(E, 2) int: the graph as (sender, receiver) pairs, node ids 0..N-1: the receiver hears the sender",
+    "edges": "(E, 2) int: the graph as (sender, receiver) pairs, node ids 0..N-1: the receiver hears the sender; "
+             "or (E, 3): (sender, receiver, weight) triples, a weighted graph",
     "directed": "0/1: the edge lists are one-way (default 0: each pair joins both ways)",
     "n_nodes": "int: N, checked against x (optional)",
     "indptr, indices": "(N+1,), (E,) int: the graph as CSR instead: node i hears indices[indptr[i]:indptr[i+1]]",
-    "edges_0, edges_1, ... (or indptr_0 + indices_0, ...)": "several graphs, with graph_index",
+    "weights": "(E,) float: edge weights, one per pair of edges (both directions get it unless directed) or per "
+               "entry of indices; finite, negative allowed; duplicate pairs add their weights (optional)",
+    "edges_0, edges_1, ... (or indptr_0 + indices_0, ...; weights_0, ...)": "several graphs, with graph_index; "
+                                                                          "weighted all, or none",
     "graph_index": "(B,) int: the graph of each trajectory (required with several graphs)",
+    "node_attrs": "(B, N, dp) or (N, dp) float: static attributes of each node, per trajectory or shared by all "
+                  "(optional)",
+    "attr_names": "(dp,) strings: the attributes' names (optional; default attr 1, attr 2, ...)",
     "state_names, control_names": "(dx,), (du,) strings: names of the dimensions, used by the figures (optional)",
     "state_groups": "(dx,) strings: the group of each state dimension; mpnode eval reports each group's error "
                     "(optional)",
     "anything else": "kept: a scalar as a root attribute, an array under aux/",
 }
 _NUMBERED = re.compile(r"^(edges|indptr|indices)_(\d+)$")
-_GRAPH = ("edges", "indptr", "indices", "directed", "n_nodes")
+_WEIGHTS = re.compile(r"^weights(_\d+)?$")
 
 
 def read_npz(path, dt=None, system=None):
@@ -65,9 +72,9 @@ def read_npz(path, dt=None, system=None):
     graphs = _graphs(arrays, x.shape[2], source)
     for key in ("state_names", "state_groups", "control_names"):
         if key in arrays:
-            names = arrays.pop(key)
-            attrs[key] = names.tolist() if names.dtype.kind in "US" and names.ndim == 1 else names
+            attrs[key] = _names(arrays.pop(key))
     u, graph_index = arrays.pop("u", None), arrays.pop("graph_index", None)
+    node_attrs, attr_names = arrays.pop("node_attrs", None), arrays.pop("attr_names", None)
     aux = {}
     for key, a in arrays.items():  # the rest is kept, never dropped
         if a.ndim == 0:
@@ -75,7 +82,13 @@ def read_npz(path, dt=None, system=None):
         else:
             aux[key] = a
     return Trajectories.from_arrays(x, graphs, step, name, u=u, graph_index=graph_index, attrs=attrs, aux=aux,
-                                    t=times, source=source)
+                                    t=times, node_attrs=node_attrs,
+                                    attr_names=None if attr_names is None else _names(attr_names), source=source)
+
+
+def _names(a):
+    """A 1-D string array as a list of str (anything else as it is, for the rules to name)."""
+    return a.tolist() if a.dtype.kind in "US" and a.ndim == 1 else a
 
 
 def _load(source):
@@ -194,21 +207,39 @@ def _graphs(arrays, n, source):
         if numbered != list(range(len(numbered))):
             raise InputError(source, "edges_0", f"the numbered graphs are {numbered}",
                              f"graphs numbered 0..{len(numbered) - 1} with no gaps")
-        return [_one_graph(arrays, f"_{g}", n, bool(directed), source) for g in numbered]
-    if not single:
+        graphs = [_one_graph(arrays, f"_{g}", n, bool(directed), source) for g in numbered]
+    elif not single:
         raise InputError(source, "edges", "is missing: the archive has no graph (no edges, no indptr and indices)",
                          "edges (E, 2) of (sender, receiver) pairs, or CSR indptr and indices")
-    return [_one_graph(arrays, "", n, bool(directed), source)]
+    else:
+        graphs = [_one_graph(arrays, "", n, bool(directed), source)]
+    _check_weighted(arrays, graphs, bool(numbered), source)
+    return graphs
+
+
+def _check_weighted(arrays, graphs, numbered, source):
+    """No weights left without their graph, and every graph weighted or none (named by its key)."""
+    for key in arrays:
+        if _WEIGHTS.match(key):
+            raise InputError(source, key, "has no graph of its own in the archive",
+                             "weights_k beside edges_k (or indptr_k and indices_k) of each graph k"
+                             if numbered else "weights beside edges (or indptr and indices)")
+    for g, graph in enumerate(graphs):
+        if graph.weighted != graphs[0].weighted:
+            weighted, plain = (g, 0) if graph.weighted else (0, g)
+            raise InputError(source, f"weights_{plain}", f"is missing, but graph {weighted} is weighted",
+                             "weights for every graph, or for none (weights of 1 for a graph of equal edges)")
 
 
 def _one_graph(arrays, suffix, n, directed, source):
     """edges{suffix} or indptr{suffix} + indices{suffix} (removed from ``arrays``) as a Graph."""
-    e, ip, ix = (f"edges{suffix}", f"indptr{suffix}", f"indices{suffix}")
+    e, ip, ix, wk = (f"edges{suffix}", f"indptr{suffix}", f"indices{suffix}", f"weights{suffix}")
+    w = arrays.pop(wk, None)
     if e in arrays:
         if ip in arrays or ix in arrays:
             raise InputError(source, e, f"is given together with {ip if ip in arrays else ix}",
                              "each graph either as an edge list or as CSR, not both")
-        return as_graph(arrays.pop(e), n, directed, source, e)
+        return _edge_graph(arrays.pop(e), w, n, directed, (e, wk), source)
     for key in (ip, ix):
         if key not in arrays:
             raise InputError(source, key, "is missing", f"CSR graphs need both {ip} and {ix} (or give {e})")
@@ -217,9 +248,25 @@ def _one_graph(arrays, suffix, n, directed, source):
         if a.size and a.dtype.kind not in "iu":
             raise InputError(source, key, f"has dtype {a.dtype}", "integer node ids / offsets")
     try:
-        check_csr(indptr, indices, n, True, source, "csr")
+        check_csr(indptr, indices, n, True, source, "csr", w)
     except InputError as err:  # name the archive's key, not the format's
-        key = ip if err.field.endswith("indptr") else ix
+        key = {"indptr": ip, "weights": wk}.get(err.field.rsplit("/", 1)[-1], ix)
         raise InputError(source, key, err.problem, err.expected) from None
     rows = np.repeat(np.arange(n), np.diff(indptr))
-    return Graph(indptr, indices, self_loops=bool(np.any(rows == indices)))
+    return Graph(indptr, indices, self_loops=bool(np.any(rows == indices)), weights=w)
+
+
+def _edge_graph(edges, w, n, directed, keys, source):
+    """The graph of an edge list (pairs, or triples with their weights), with the weights ``w``
+    of the key keys[1] (one per pair) when the archive has them."""
+    e, wk = keys
+    if w is None:
+        return as_graph(edges, n, directed, source, e)
+    if edges.ndim == 2 and edges.shape[1] == 3:
+        raise InputError(source, wk, f"is given, but {e} already holds (sender, receiver, weight) triples",
+                         f"the weights once: {e} (E, 3), or {e} (E, 2) and {wk} (E,)")
+    if edges.ndim == 2 and edges.shape[1] == 2 and edges.dtype.kind in "iuf":
+        w = check_weights(w, len(edges), source, wk)
+        return as_graph(np.column_stack([edges, w]), n, directed, source, e)
+    graph = as_graph(edges, n, directed, source, e)  # names what is wrong with the edges, unless they are empty
+    return graph.reweighted(check_weights(w, 0, source, wk))
