@@ -177,6 +177,14 @@ def test_a_version_2_reader_refuses_version_3_by_its_version(tmp_path, monkeypat
     assert e.value.field == "format_version" and "is 3" in str(e.value)
 
 
+def test_a_trajectories_built_directly_broadcasts_shared_attrs(tmp_path):
+    t = Trajectories(x=states(), graphs=[Graph.complete(N)], dt=0.1, system="s", node_attrs=np.ones((N, 2)),
+                     attr_names=["a", "b"])
+    assert t.node_attrs.shape == (B, N, 2) and t.attr_dim == 2
+    write_trajectories(tmp_path / "t.h5", t)
+    assert read_trajectories(tmp_path / "t.h5").attr_names == ["a", "b"]
+
+
 def test_hidden_dims_keep_the_attributes():
     t = Trajectories.from_arrays(states(), [(0, 1, -1.0)], 0.1, "s", node_attrs=np.ones((N, 2)), attr_names=["a", "b"])
     wider = t.with_hidden_dims(2)

@@ -63,6 +63,8 @@ class Trajectories:
     def __post_init__(self):
         if self.graph_index is None:
             self.graph_index = np.zeros(self.x.shape[0], dtype=np.int64)
+        if self.node_attrs is not None and np.ndim(self.node_attrs) == 2:  # one (N, dp) array: every trajectory's
+            self.node_attrs = np.broadcast_to(self.node_attrs, (self.x.shape[0],) + np.shape(self.node_attrs))
 
     @property
     def n_trajectories(self):
