@@ -4,7 +4,7 @@ A `GraphSpec` names a builder and its arguments, so a scene (and the file it pro
 says exactly which call made each graph; `build` returns `mpnode.base.graph.Graph` objects
 (CSR: sparse graphs stay sparse).
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import networkx as nx
 import numpy as np
@@ -54,9 +54,13 @@ class GraphSpec:
         if self.builder == "edges":
             kind = "directed" if self.directed else "undirected"
             return [f"{kind} edge list on {self.n_nodes} nodes: {[list(e) for e in self.edges]}"]
+        return [self.call(s) for s in self.seeds]
+
+    def call(self, seed):
+        """The networkx call of a random builder with ``seed`` (a number, or where it is kept)."""
         fn, names = RANDOM_BUILDERS[self.builder]
         args = ", ".join(f"{a}={self.args[a]!r}" for a in names)
-        return [f"networkx.{fn.__name__}(n={self.n_nodes}, {args}, seed={s})" for s in self.seeds]
+        return f"networkx.{fn.__name__}(n={self.n_nodes}, {args}, seed={seed})"
 
     def build(self):
         """The graphs, one per seed (or the single fixed graph): list of Graph."""
@@ -79,6 +83,45 @@ class GraphSpec:
             # networkx joins each node to k//2 neighbours per side: an odd k builds a ring of degree k-1
             out["graph_ring_degree"] = 2 * (self.args["k"] // 2)
         return out
+
+
+@dataclass(frozen=True)
+class GraphDraws:
+    """A random graph of its own for every trajectory, so that a model meets many graphs of a
+    family, not a few.
+
+    families : GraphSpec of random builders on the same N, their seeds unused: trajectory b picks
+        one uniformly and a networkx seed, both from its own generator (data_gen.per_trajectory)
+    """
+
+    families: tuple
+    builder = "per_trajectory"
+
+    @property
+    def n_nodes(self):
+        return self.families[0].n_nodes
+
+    def draw(self, rng):
+        """(Graph, family index, networkx seed) of one trajectory, from its generator ``rng``."""
+        family = int(rng.integers(len(self.families)))
+        seed = int(rng.integers(2**31))
+        return replace(self.families[family], seeds=(seed,)).build()[0], family, seed
+
+    def calls(self):
+        """One line per family: its networkx call, the seed that of the trajectory."""
+        return [spec.call("aux/graph_seed[b]") for spec in self.families]
+
+    def describe(self):
+        """Root attributes recording the families (each trajectory's pick: aux/graph_family, graph_seed)."""
+        return {"graph_builder": self.builder, "graph_calls": self.calls()}
+
+
+def symmetric_weights(graph, low, high, rng):
+    """(E,) edge weights uniform in [low, high], one draw per pair of nodes (pairs in sorted order),
+    so that an undirected edge weighs the same in both rows, as a spring or a mutual coupling does."""
+    pairs = np.sort(graph.edges(), axis=1)
+    unique, which = np.unique(pairs, axis=0, return_inverse=True)
+    return rng.uniform(low, high, size=len(unique))[which.reshape(-1)]
 
 
 def check_args(builder, args, source, field):
