@@ -23,7 +23,7 @@ from mpnode.base.errors import NumericalError
 from mpnode.evaluation.metrics import nmse
 
 from .simulate import integrate
-from .systems import SYSTEMS, file_rhs
+from .systems import SYSTEMS, file_rhs, trajectory_rhs
 
 #: the loosest tolerance tried first; each next is ten times tighter, down to the file's own
 LOOSEST_TOL = 1e-3
@@ -55,14 +55,17 @@ def rk4_columns(rhs, y0, n_steps, dt, steps):
 
 
 class _Sample:
-    """The first k trajectories of a file and the true right-hand side of each of its graphs."""
+    """The first k trajectories of a file and the true right-hand side of each of its graphs (of each
+    trajectory, when its nodes differ: the batched RK4 then runs one trajectory per batch)."""
 
     def __init__(self, traj, k):
         self.system = SYSTEMS[traj.system]
-        self.rhs = file_rhs(traj)
         self.k, self.horizon, self.dt = k, traj.horizon, float(traj.dt)
         self.x = np.asarray(traj.x, dtype=np.float64)
-        self.gi = np.asarray(traj.graph_index[:k])
+        if traj.node_attrs is None:
+            self.rhs, self.gi = file_rhs(traj), np.asarray(traj.graph_index[:k])
+        else:
+            self.rhs, self.gi = [trajectory_rhs(traj, b) for b in range(k)], np.arange(k)
         self.method = str(traj.attrs.get("integrator", "DOP853"))
         self.rtol, self.atol = float(traj.attrs.get("rtol", 1e-9)), float(traj.attrs.get("atol", 1e-9))
 

@@ -19,6 +19,7 @@ from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph
 
 from . import forced_pendulum, quadrotor
+from .graphs import symmetric_weights
 
 #: the pendulum is refused where |cos(theta)| falls below this (the RHS divides by it)
 PENDULUM_COS_MIN = 1e-6
@@ -96,10 +97,57 @@ def kuramoto_rhs(t, y, omega, K, A):
     return (np.repeat(omega, columns) + K * coupling).reshape(y.shape)
 
 
+def spring_pendulums_het_rhs(t, y, m, l, g, S, stiffness):
+    """Pendulums of their own length l_i and mass m_i, joined by springs of their own stiffness
+    k_ij; y = [theta_0, omega_0, ...], shape (2N,) or (2N, K) (then one state per column).
+
+    In the bobs' horizontal positions X_i = l_i sin(theta_i), m_i X_i'' = -m_i g sin(theta_i)
+    + sum_{j in N(i)} k_ij (X_j - X_i), hence
+    theta_i'' = (m_i l_i om_i^2 s_i - m_i g s_i + sum_j k_ij (X_j - X_i)) / (m_i l_i cos(th_i)):
+    with equal l, m and k exactly `spring_pendulums_rhs`.  m, l : (N,);  S : sparse (N, N),
+    S[i, j] = k_ij;  stiffness : (N,) its row sums.
+    """
+    theta, omega = y[0::2], y[1::2]
+    shape = (-1,) + (1,) * (theta.ndim - 1)  # node values against one column per state
+    m, l, stiffness = m.reshape(shape), l.reshape(shape), stiffness.reshape(shape)
+    s = np.sin(theta)
+    X = l * s
+    dy = np.empty_like(y)
+    dy[0::2] = omega
+    dy[1::2] = (m * l * omega**2 * s - m * g * s + S @ X - stiffness * X) / (m * l * np.cos(theta))
+    return dy
+
+
+def kuramoto_het_rhs(t, y, omega, K, W, inv_degree):
+    """Kuramoto oscillators of their own natural frequencies, coupled along weighted edges, each
+    hearing the weighted mean of its neighbours; y = [cos th_0, sin th_0, cos th_1, ...], shape
+    (2N,) or (2N, K) (then one state per column).
+
+    theta_i' = omega_i + K / deg_i sum_{j in N(i)} w_ij sin(theta_j - theta_i), deg_i the number of
+    neighbours, and (cos, sin)' = theta' (-sin, cos).  sin(th_j - th_i) = s_j c_i - c_j s_i is
+    linear in the neighbours' (c_j, s_j): the coupling is two sparse products.  omega,
+    inv_degree : (N,) (1/deg_i, 0 for a node that hears nobody);  W : sparse (N, N), W[i, j] = w_ij.
+    """
+    c, s = y[0::2], y[1::2]
+    shape = (-1,) + (1,) * (c.ndim - 1)
+    rate = omega.reshape(shape) + K * inv_degree.reshape(shape) * (c * (W @ s) - s * (W @ c))
+    dy = np.empty_like(y)
+    dy[0::2] = -s * rate
+    dy[1::2] = c * rate
+    return dy
+
+
 def adjacency(graph):
     """The CSR graph as a scipy sparse matrix (N, N) of ones; sparse graphs stay sparse."""
     n = graph.n_nodes
     return scipy.sparse.csr_array((np.ones(graph.n_edges), graph.indices, graph.indptr), shape=(n, n))
+
+
+def weighted_adjacency(graph):
+    """The CSR graph as a sparse matrix (N, N) of its edge weights (ones where it has none)."""
+    n = graph.n_nodes
+    w = np.ones(graph.n_edges) if graph.weights is None else np.asarray(graph.weights, dtype=np.float64)
+    return scipy.sparse.csr_array((w, graph.indices, graph.indptr), shape=(n, n))
 
 
 # ---- parameters that are drawn, not given -------------------------------------------
@@ -116,6 +164,27 @@ def lorenz_coupling(n_nodes, coupling, rng):
 def kuramoto_frequencies(rng):
     """omega, shape (3,): one standard normal draw, shared by every node."""
     return rng.standard_normal(3)
+
+
+def draw_kuramoto_het(p, graph, rng):
+    """One trajectory's (edge weights (E,), node attributes (N, 1)): w_ij uniform in [w_min, w_max],
+    the same both ways; omega_i uniform in [omega_min, omega_max]."""
+    weights = symmetric_weights(graph, p["w_min"], p["w_max"], rng)
+    return weights, rng.uniform(p["omega_min"], p["omega_max"], size=(graph.n_nodes, 1))
+
+
+def draw_spring_pendulums_het(p, graph, rng):
+    """One trajectory's (spring stiffnesses (E,), node attributes (N, 2) = [length, mass]):
+    k_ij uniform in [k_min, k_max], the same both ways; l_i, m_i uniform in their ranges."""
+    stiffness = symmetric_weights(graph, p["k_min"], p["k_max"], rng)
+    n = graph.n_nodes
+    lengths, masses = rng.uniform(p["l_min"], p["l_max"], n), rng.uniform(p["m_min"], p["m_max"], n)
+    return stiffness, np.stack([lengths, masses], axis=1)
+
+
+def cos_sin(phase):
+    """The state of phases (N, 1): their cosines and sines (N, 2), a point on the circle per node."""
+    return np.concatenate([np.cos(phase), np.sin(phase)], axis=1)
 
 
 # ---- the registry -------------------------------------------------------------------
@@ -143,6 +212,15 @@ class System:
         group's error
     time_scale : (scalar parameters) -> the time over which a trajectory changes appreciably
         (docs/systems.md#time-scales); saved steps longer than MAX_DT_TIME_SCALES of it are refused
+    attr_names : systems whose nodes differ: one name (with its unit) per node attribute; files carry
+        the attributes as node_attrs (B, N, dp) and these names as attr_names.  () when nodes are alike
+    draw_trajectory : systems whose nodes or edges differ: (scalars, graph, rng) -> (edge weights (E,),
+        node attributes (N, dp)), drawn afresh for each trajectory; their rhs takes the node
+        attributes as a third argument and reads the weights from the graph
+    state_of : the state made of the uniform sampler's draw, (N, len(low)) -> (N, dx) (kuramoto_het
+        draws a phase and keeps its cosine and sine); None: the draw is the state
+    ranges : ((low, high, floor), ...): scalar parameters bounding a draw, refused unless low <= high
+        and (floor not None) low > floor
     """
 
     name: str
@@ -162,6 +240,10 @@ class System:
     state_names: tuple = ()
     state_groups: tuple = ()
     time_scale: Callable = lambda p: 1.0
+    attr_names: tuple = ()
+    draw_trajectory: Callable = None
+    state_of: Callable = None
+    ranges: tuple = ()
 
     def check_graph(self, graph, source, field):
         """Raise InputError unless ``graph`` is one this system's physics is defined on."""
@@ -173,6 +255,15 @@ class System:
                 raise InputError(source, field, f"{self.name} needs every node coupled to every other",
                                  "a complete graph without self-loops")
 
+    def check_ranges(self, params, source):
+        """InputError unless each range a trajectory draws from (``ranges``) is low <= high above its floor."""
+        p = {**self.defaults, **params}
+        for low, high, floor in self.ranges:
+            if not p[low] <= p[high]:
+                raise InputError(source, f"params.{low}", f"is {p[low]:g}, above {high} = {p[high]:g}",
+                                 f"{low} <= {high}")
+            if floor is not None and not p[low] > floor:
+                raise InputError(source, f"params.{low}", f"is {p[low]:g}", f"a number > {floor:g}")
 
     def check_dt(self, params, dt, source, field="dt"):
         """InputError unless saved states ``dt`` apart can be integrated and learned: at most
@@ -215,6 +306,31 @@ def _kuramoto(p, graph):
     return partial(kuramoto_rhs, omega=np.asarray(p["omega"]), K=p["K"], A=adjacency(graph))
 
 
+def _spring_pendulums_het(p, graph, attrs):
+    attrs = np.asarray(attrs, dtype=np.float64)
+    S = weighted_adjacency(graph)
+    return partial(spring_pendulums_het_rhs, m=attrs[:, 1].copy(), l=attrs[:, 0].copy(), g=p["g"], S=S,
+                   stiffness=np.asarray(S.sum(axis=1)).ravel())
+
+
+def _kuramoto_het(p, graph, attrs):
+    degree = graph.degrees().astype(np.float64)
+    return partial(kuramoto_het_rhs, omega=np.asarray(attrs, dtype=np.float64)[:, 0].copy(), K=p["K"],
+                   W=weighted_adjacency(graph),
+                   inv_degree=np.divide(1.0, degree, out=np.zeros_like(degree), where=degree > 0))
+
+
+def _pendulum_period(length):
+    """The small-oscillation period of a pendulum of ``length`` (the pendulums' time scale)."""
+    return lambda p: 2 * np.pi * np.sqrt(abs(p[length] / p["g"])) if p["g"] else np.inf
+
+
+def _kuramoto_het_time(p):
+    """The time a phase takes to move one radian at the fastest frequency or coupling."""
+    rate = max(abs(p["omega_min"]), abs(p["omega_max"]), abs(p["K"]) * p["w_max"])
+    return 1.0 / rate if rate else np.inf
+
+
 def _nothing_drawn(p, n_nodes, rng):
     return {}
 
@@ -226,17 +342,17 @@ SYSTEMS = {
                low=(-np.pi / 4, -0.5), high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_pendulum,
                guard=pendulum_guard, n_nodes=2, complete=True,
                state_names=("angle (rad)", "angular velocity (rad/s)"),
-               time_scale=lambda p: 2 * np.pi * np.sqrt(abs(p["l"] / p["g"])) if p["g"] else np.inf),
+               time_scale=_pendulum_period("l")),
         System("spring_pendulums", 2, dict(m=1.0, l=1.5, k=2.0, g=9.81),
                low=(-np.pi / 4, -0.5), high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_spring_pendulums,
                guard=pendulum_guard, state_names=("angle (rad)", "angular velocity (rad/s)"),
-               time_scale=lambda p: 2 * np.pi * np.sqrt(abs(p["l"] / p["g"])) if p["g"] else np.inf),
+               time_scale=_pendulum_period("l")),
         # rhs: f(t, y, u) with the horizontal forces u (2,) on the bobs, held (see forced_pendulum.py)
         System(forced_pendulum.SYSTEM, 2, dict(forced_pendulum.PARAMS), low=(-np.pi / 4, -0.5),
                high=(np.pi / 4, 0.5), draw=_nothing_drawn, rhs=_forced_pendulum, guard=pendulum_guard, n_nodes=2,
                complete=True, generator=forced_pendulum.generate,
                state_names=("angle (rad)", "angular velocity (rad/s)"),
-               time_scale=lambda p: 2 * np.pi * np.sqrt(abs(p["l"] / p["g"])) if p["g"] else np.inf),
+               time_scale=_pendulum_period("l")),
         System("lorenz", 3, dict(sigma=10.0, rho=28.0, beta=8.0 / 3.0, coupling=0.01),
                low=(-1.0,) * 3, high=(1.0,) * 3,
                draw=lambda p, n, rng: {"H": lorenz_coupling(n, p["coupling"], rng)}, rhs=_lorenz,
@@ -249,6 +365,18 @@ SYSTEMS = {
                low=(-1.0,) * 3, high=(1.0,) * 3,
                draw=lambda p, n, rng: {"omega": kuramoto_frequencies(rng)}, rhs=_kuramoto,
                state_names=("phase 1 (rad)", "phase 2 (rad)", "phase 3 (rad)")),
+        System("spring_pendulums_het", 2,
+               dict(g=9.81, l_min=1.0, l_max=2.0, m_min=0.5, m_max=2.0, k_min=1.0, k_max=4.0),
+               low=(-np.pi / 6, -0.5), high=(np.pi / 6, 0.5), draw=_nothing_drawn, rhs=_spring_pendulums_het,
+               guard=pendulum_guard, state_names=("angle (rad)", "angular velocity (rad/s)"),
+               time_scale=_pendulum_period("l_min"), attr_names=("length (m)", "mass (kg)"),
+               draw_trajectory=draw_spring_pendulums_het,
+               ranges=(("l_min", "l_max", 0.0), ("m_min", "m_max", 0.0), ("k_min", "k_max", 0.0))),
+        System("kuramoto_het", 2, dict(K=1.0, omega_min=0.0, omega_max=2.0, w_min=0.5, w_max=1.5),
+               low=(-np.pi,), high=(np.pi,), draw=_nothing_drawn, rhs=_kuramoto_het, state_of=cos_sin,
+               state_names=("cos phase", "sin phase"), time_scale=_kuramoto_het_time,
+               attr_names=("natural frequency (rad/s)",), draw_trajectory=draw_kuramoto_het,
+               ranges=(("omega_min", "omega_max", None), ("w_min", "w_max", 0.0))),
         # rhs: f(t, y, F) on the state INCLUDING the load, thrusts F held (see quadrotor.py)
         System(quadrotor.SYSTEM, quadrotor.STATE_DIM, dict(quadrotor.PARAMS), low=(), high=(),
                draw=quadrotor.draw_params, rhs=quadrotor.make_rhs, complete=True,
@@ -267,15 +395,18 @@ def get_system(name, source="system", field="system"):
         raise InputError(source, field, f"unknown system {name!r}", "one of " + ", ".join(SYSTEMS)) from None
 
 
-def make_rhs(system, params, graph):
+def make_rhs(system, params, graph, node_attrs=None):
     """f(t, y) for one trajectory of ``system`` on ``graph``; for coupled_pendulum_force f(t, y, u) with its
     forces u (2,) held; for the controlled quadrotor_load,
     f(t, y, F) with the thrusts F (n, 4) held over the step (its state includes the load).
 
     params : mapping holding at least the system's scalar parameters and drawn arrays
     (e.g. a file's root attributes merged with its `params/` group); extra keys are ignored.
+    node_attrs : (N, dp), the trajectory's node attributes, for a system whose nodes differ (its
+    edge weights are the graph's).
     """
-    return get_system(system).rhs(params, graph)
+    s = get_system(system)
+    return s.rhs(params, graph) if node_attrs is None else s.rhs(params, graph, node_attrs)
 
 
 def file_rhs(traj):
@@ -284,5 +415,23 @@ def file_rhs(traj):
     traj : Trajectories of a reference system (root attributes + `params/` hold its parameters).
     Raises KeyError/ValueError/TypeError when the file lacks or garbles a parameter.
     """
+    if traj.node_attrs is not None:
+        raise ValueError(f"{traj.system}: its nodes differ from trajectory to trajectory; trajectory_rhs gives "
+                         "each trajectory's right-hand side")
     params = {**traj.attrs, **traj.params}
     return [make_rhs(traj.system, params, g) for g in traj.graphs]
+
+
+def trajectory_rhs(traj, b):
+    """f(t, y) of trajectory ``b`` of a file, its node attributes and weighted graph included.
+
+    Raises ValueError when the file's attribute names are not its system's (the rhs reads them
+    by position), KeyError/TypeError as file_rhs.
+    """
+    attrs = traj.node_attrs
+    if attrs is None:
+        return make_rhs(traj.system, {**traj.attrs, **traj.params}, traj.graph_of(b))
+    expected = list(get_system(traj.system).attr_names)
+    if list(traj.attr_names or ()) != expected:
+        raise ValueError(f"{traj.system}: node attributes {traj.attr_names}, expected {expected}")
+    return make_rhs(traj.system, {**traj.attrs, **traj.params}, traj.graph_of(b), attrs[b])
