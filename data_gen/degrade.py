@@ -79,7 +79,8 @@ def degrade(traj, degradation, dt):
              "hidden_dims": list(d.hide), "degradation_seed": d.seed}
     return Trajectories(x=x, graphs=traj.graphs, dt=dt, system=traj.system,
                         u=None if traj.u is None else np.asarray(traj.u), graph_index=traj.graph_index,
-                        attrs=attrs, params=traj.params, aux={}, t=t, truth=truth)
+                        attrs=attrs, params=traj.params, aux={}, t=t, truth=truth, node_attrs=traj.node_attrs,
+                        attr_names=traj.attr_names)
 
 
 def _observation_index(rng, n_trajectories, n_fine, step, jitter):

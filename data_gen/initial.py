@@ -11,8 +11,11 @@ from mpnode.base.errors import InputError
 
 
 def uniform(rng, system, n_nodes):
-    """The spec's default: every coordinate uniform in (system.low, system.high) per dimension."""
-    return rng.uniform(system.low, system.high, size=(n_nodes, system.state_dim))
+    """The spec's default: every coordinate uniform in (system.low, system.high) per dimension; a
+    system that keeps them otherwise (kuramoto_het: a phase as its cosine and sine) maps them
+    with its ``state_of``."""
+    x = rng.uniform(system.low, system.high, size=(n_nodes, len(system.low)))
+    return x if system.state_of is None else system.state_of(x)
 
 
 def hotspots(rng, system, n_nodes):
@@ -51,16 +54,18 @@ def trajectory_rng(seed, b):
 
 def initial_states(scene):
     """(x0 (B, N, dx), graphs, graph_index (B,)) of ``scene``, drawn exactly as `generate` draws
-    them: trajectory b from `trajectory_rng` (seed, b) with the scene's sampler, on graph b mod G."""
+    them: trajectory b from `trajectory_rng` (seed, b) with the scene's sampler, on graph b mod G
+    (or, where trajectories draw their own, on its weighted graph: data_gen.per_trajectory)."""
+    from .per_trajectory import scene_graphs
     from .systems import get_system
 
     system = get_system(scene.system)
     if system.generator is not None:
         raise InputError(scene.name, "system", f"{system.name} is a closed-loop system whose initial states come "
                          "with its controls", "a scene of a system without controls")
-    graphs = scene.graph.build()
+    made = scene_graphs(scene)
+    graphs, gi = made.graphs, made.graph_index
     sampler = get_sampler(scene.initial, system, scene.graph.n_nodes, scene.name, "initial")
-    gi = np.arange(scene.trajectories) % len(graphs)
     x0 = np.stack([sampler(trajectory_rng(scene.seed, b), system, graphs[gi[b]].n_nodes)
                    for b in range(scene.trajectories)])
     return x0, graphs, gi

@@ -38,6 +38,7 @@ from mpnode.runs.executors import chunk_ranges, map_chunks, open_executor
 
 from .initial import get_sampler
 from .invariants import invariant_name
+from .per_trajectory import scene_graphs
 from .scenes import check_scene
 from .systems import get_system
 
@@ -61,29 +62,29 @@ def generate(scene, *, workers=2, max_tries=10, progress=None, scheduler=None):
     Root attributes: the system's scalar parameters (spec names), state_names, seed, system_seed,
     integrator, rtol, atol, scene, description, initial, redrawn, and what graphs were built;
     `params/`: the drawn arrays (lorenz H, kuramoto omega).  The graph of trajectory b is
-    graph b mod G.  Raises InputError for a bad scene, NumericalError if trajectories keep failing.
+    graph b mod G; a system whose nodes and edges differ has one weighted graph per trajectory and
+    its node attributes (data_gen.per_trajectory).  Raises InputError for a bad scene,
+    NumericalError if trajectories keep failing.
     """
     check_scene(scene, scene.name)
     system = get_system(scene.system)
-    graphs = scene.graph.build()
-    for g in graphs:
+    made = scene_graphs(scene)
+    for g in made.graphs:
         system.check_graph(g, scene.name, "graph")
     if system.generator is not None:  # closed loop (quadrotor_load): its own driver, controls and aux data
         return system.generator(scene, workers=workers, max_tries=max_tries, progress=progress, scheduler=scheduler)
-    n_nodes, B = scene.graph.n_nodes, scene.trajectories
+    n_nodes = scene.graph.n_nodes
     scalars = {**system.defaults, **scene.params}
     drawn = system.draw(scalars, n_nodes, np.random.default_rng(scene.system_seed))
     sampler = get_sampler(scene.initial, system, n_nodes, scene.name, "initial")
-    graph_index = np.arange(B) % len(graphs)
-    x, redraws, fallback = simulate(system.name, {**scalars, **drawn}, graphs, graph_index, sampler,
+    x, redraws, fallback = simulate(system.name, {**scalars, **drawn}, made.graphs, made.graph_index, sampler,
                                     scene.horizon, scene.dt, scene.seed, method=scene.integrator, rtol=scene.rtol,
                                     atol=scene.atol, max_tries=max_tries, workers=workers, progress=progress,
-                                    return_fallback=True, scheduler=scheduler)
+                                    return_fallback=True, scheduler=scheduler, node_attrs=made.node_attrs)
     attrs = dict(scalars, seed=scene.seed, system_seed=scene.system_seed, integrator=scene.integrator,
                  rtol=scene.rtol, atol=scene.atol, scene=scene.name, description=scene.description,
-                 initial=scene.initial, max_tries=max_tries, redrawn=int(redraws.sum()),
-                 **scene.graph.describe())
-    aux = {}
+                 initial=scene.initial, max_tries=max_tries, redrawn=int(redraws.sum()), **made.attrs)
+    aux = dict(made.aux)
     if scene.integrator in EXPLICIT_METHODS:
         attrs.update(fallback_integrator=FALLBACK_METHOD, fallback_used=int(fallback.sum()),
                      stiff_nfev_per_step=STIFF_NFEV_PER_STEP)
@@ -94,8 +95,10 @@ def generate(scene, *, workers=2, max_tries=10, progress=None, scheduler=None):
         attrs["state_names"] = list(system.state_names)
     if invariant_name(system.name):
         attrs["invariant"] = invariant_name(system.name)
+    graphs, gi = made.graphs, made.graph_index
     return Trajectories(x=x, graphs=graphs, dt=scene.dt, system=system.name,
-                        graph_index=graph_index if len(graphs) > 1 else None, attrs=attrs, params=drawn, aux=aux)
+                        graph_index=gi if len(graphs) > 1 else None, attrs=attrs, params=drawn, aux=aux,
+                        **made.trajectory_fields())
 
 
 def integrate(rhs, x0, n_steps, dt, method="DOP853", rtol=1e-9, atol=1e-9, guard=None, max_nfev=None):
@@ -181,7 +184,7 @@ def _terminal(guard):
 
 def simulate(system, params, graphs, graph_index, sampler, n_steps, dt, seed, *,
              method="DOP853", rtol=1e-9, atol=1e-9, max_tries=10, workers=2, progress=None,
-             fallback=FALLBACK_METHOD, return_fallback=False, scheduler=None):
+             fallback=FALLBACK_METHOD, return_fallback=False, scheduler=None, node_attrs=None):
     """Integrate B = len(graph_index) trajectories of ``system``.
 
     params : scalar and drawn array parameters (see systems.make_rhs)
@@ -190,13 +193,14 @@ def simulate(system, params, graphs, graph_index, sampler, n_steps, dt, seed, *,
     progress : called with the number of trajectories just finished, or None
     fallback : the implicit method of the stiffness switch (module docstring), None to switch it off
     workers, scheduler : see mpnode.runs.executors.open_executor (workers=1 without a scheduler: in this process)
+    node_attrs : (B, N, dp), each trajectory's node attributes, for a system whose nodes differ; or None
     Returns (x, redraws): x shape (B, n_steps+1, N, dx) float64, redraws shape (B,) int;
     with ``return_fallback`` also used_fallback, shape (B,) bool (True: integrated with ``fallback``).
     Raises NumericalError when a trajectory still fails after ``max_tries`` initial states.
     """
     job = dict(system=system, params=params, graphs=graphs, graph_index=np.asarray(graph_index),
                sampler=sampler, n_steps=n_steps, dt=dt, seed=seed, method=method, rtol=rtol,
-               atol=atol, max_tries=max_tries, fallback=fallback, token=secrets.token_hex(8))
+               atol=atol, max_tries=max_tries, fallback=fallback, node_attrs=node_attrs, token=secrets.token_hex(8))
     B = len(graph_index)
     x = np.empty((B, n_steps + 1, graphs[0].n_nodes, get_system(system).state_dim))
     redraws = np.zeros(B, dtype=np.int64)
@@ -227,7 +231,8 @@ def _run_job(job, chunk):
     prepared = _PREPARED.get(job["token"])
     if prepared is None:
         system = get_system(job["system"])
-        prepared = dict(job, sys=system, rhs=[system.rhs(job["params"], g) for g in job["graphs"]])
+        shared = job["node_attrs"] is None  # else each trajectory's rhs is made when it runs (_rhs_of)
+        prepared = dict(job, sys=system, rhs=[system.rhs(job["params"], g) for g in job["graphs"]] if shared else None)
         _PREPARED.clear()  # one job at a time per process: the last one's RHS are dropped
         _PREPARED[job["token"]] = prepared
     return _run(prepared, chunk)
@@ -240,12 +245,12 @@ def _run(j, chunk):
     for b in chunk:
         rng = np.random.default_rng(np.random.SeedSequence(j["seed"], spawn_key=(b,)))
         g = int(j["graph_index"][b])
-        n_nodes = j["graphs"][g].n_nodes
+        n_nodes, rhs = j["graphs"][g].n_nodes, _rhs_of(j, b, g)
         for tries in range(j["max_tries"]):
             x0 = j["sampler"](rng, j["sys"], n_nodes)
             try:
-                x, used = integrate_switching(j["rhs"][g], x0, j["n_steps"], j["dt"], j["method"], j["rtol"],
-                                              j["atol"], j["sys"].guard, fallback=j["fallback"])
+                x, used = integrate_switching(rhs, x0, j["n_steps"], j["dt"], j["method"], j["rtol"], j["atol"],
+                                              j["sys"].guard, fallback=j["fallback"])
                 xs.append(x)
                 fs.append(used != j["method"])
                 break
@@ -256,3 +261,10 @@ def _run(j, chunk):
                                  f"states in a row (last: {problem}); check the parameters and dt")
         rs.append(tries)
     return np.stack(xs), np.asarray(rs, dtype=np.int64), np.asarray(fs, dtype=bool)
+
+
+def _rhs_of(j, b, g):
+    """The right-hand side of trajectory b (on graph g) of the prepared job ``j``."""
+    if j["rhs"] is not None:
+        return j["rhs"][g]
+    return j["sys"].rhs(j["params"], j["graphs"][g], j["node_attrs"][b])
