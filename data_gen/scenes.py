@@ -1,18 +1,20 @@
 """Scenes: everything that decides a generated data set, by name or from a TOML file.
 
 A Scene is system + parameters + graph + initial-state sampler + B, T, dt + seeds.
-The built-in scenes are the data sets of the MP-NODE paper (docs/systems.md); a scene set
+The built-in scenes are the data sets of the MP-NODE paper (docs/systems.md), and networks whose
+nodes and edges differ, each trajectory drawing its own (data_gen.per_trajectory); a scene set
 (``SETS``) names several of them whose files are trained on together.
 Anything else is a TOML file with this schema (example: scenes/example_gene_ring.toml)::
 
     description  = "one line"   # optional
-    system       = "gene"       # required: coupled_pendulum | coupled_pendulum_force | lorenz | gene |
-                                #   kuramoto | quadrotor_load
+    system       = "gene"       # required: coupled_pendulum | coupled_pendulum_force | spring_pendulums |
+                                #   spring_pendulums_het | lorenz | gene | kuramoto | kuramoto_het | quadrotor_load
     trajectories = 1000         # optional, B >= 1
     horizon      = 50           # optional, T >= 1 steps
     dt           = 0.05         # optional, > 0
-    seed         = 0            # optional, initial states (trajectory b uses spawn_key (b,))
-    system_seed  = 0            # optional, drawn parameters (lorenz H, kuramoto omega)
+    seed         = 0            # optional, initial states (trajectory b uses spawn_key (b,)), and what each
+                                # trajectory draws for itself (spawn_key (b, 1): weights, node attributes)
+    system_seed  = 0            # optional, drawn parameters shared by all (lorenz H, kuramoto omega)
     initial      = "uniform"    # optional: uniform (the spec's ranges) | hotspots (gene, square N)
                                 # | equilibrium (quadrotor_load, which must say so)
     integrator   = "DOP853"     # optional: a scipy solve_ivp method
@@ -21,7 +23,8 @@ Anything else is a TOML file with this schema (example: scenes/example_gene_ring
     excitation   = 0.5          # optional, quadrotor_load only (default 0): std (N) of a random offset
                                 # of each quadrotor's collective thrust, held for a few steps, so
                                 # that the data show what the thrusts do apart from the state
-    [params]                    # optional: the system's scalar parameters, spec names (e.g. b, f, h)
+    [params]                    # optional: the system's scalar parameters, spec names (e.g. b, f, h; the
+                                # ranges a trajectory draws from, e.g. l_min, l_max)
     [graph]                     # required
     builder  = "edges"          # complete | edges | gnp | gnm | barabasi_albert | watts_strogatz
     nodes    = 8                # N
@@ -44,6 +47,7 @@ from mpnode.base.tomlfile import load_toml
 from .graphs import (
     BUILDERS,
     RANDOM_BUILDERS,
+    GraphDraws,
     GraphSpec,
     check_args,
     gene_graph,
@@ -106,6 +110,17 @@ def _kuramoto(kind):
                  "kuramoto", kuramoto_graph(kind, 10, (1,)))
 
 
+def _kuramoto_het(n, families, what, suffix=""):
+    return Scene(f"kuramoto_het{n}{suffix}", f"{n} Kuramoto oscillators of their own frequencies, coupled along "
+                 f"weighted edges, on a fresh {what} graph per trajectory", "kuramoto_het", GraphDraws(families))
+
+
+def _spring_pendulums_het(n):
+    chain = GraphSpec("edges", n, edges=tuple((i, i + 1) for i in range(n - 1)))
+    return Scene(f"spring_pendulums_het{n}", f"a chain of {n} pendulums of their own lengths and masses, joined by "
+                 "springs of their own stiffness, all drawn per trajectory", "spring_pendulums_het", chain)
+
+
 def _quad(n):
     return Scene(f"quad{n}", f"{n} quadrotors carry a cable-suspended load towards a doorway (closed loop, "
                  "5 s of the 10 s transport)", "quadrotor_load", GraphSpec("complete", n), initial="equilibrium",
@@ -126,6 +141,10 @@ BUILTIN = {
         *(_gene(n, kind, initial="hotspots") for n in (16, 64) for kind in ("er", "ba", "ws")),
         _gene(16, "ba", seeds=(1, 2, 3, 4, 5), initial="hotspots"),
         *(_kuramoto(kind) for kind in ("er", "ba", "ws")),
+        _kuramoto_het(10, (GraphSpec("gnp", 10, {"p": 0.4}), GraphSpec("watts_strogatz", 10, {"k": 4, "p": 0.3})),
+                      "Erdos-Renyi or Watts-Strogatz"),
+        _kuramoto_het(50, (GraphSpec("barabasi_albert", 50, {"m": 2}),), "Barabasi-Albert", "_ba"),
+        _spring_pendulums_het(4), _spring_pendulums_het(10),
         *(_quad(n) for n in (3, 4, 5, 6, 8, 12)),
     ]
 }
@@ -193,9 +212,7 @@ def check_scene(scene, source):
         if key not in system.defaults:
             raise InputError(source, f"params.{key}", f"is not a parameter of {system.name}",
                              "one of " + ", ".join(system.defaults))
-    check_args(scene.graph.builder, scene.graph.args, source, "graph")
-    if scene.graph.builder in RANDOM_BUILDERS and not scene.graph.seeds:
-        raise InputError(source, "graph.seeds", "is empty", "at least one seed")
+    _check_graph(scene.graph, source)
     for key, value in (("trajectories", scene.trajectories), ("horizon", scene.horizon),
                        ("graph.nodes", scene.graph.n_nodes)):
         if value < 1:
@@ -216,7 +233,9 @@ def check_scene(scene, source):
     for key, value in scene.params.items():
         if not math.isfinite(value):
             raise InputError(source, f"params.{key}", f"is {value}", "a finite number")
-    _check_graph_ranges(scene.graph, source)
+    for spec in _graph_families(scene.graph):
+        _check_graph_ranges(spec, source)
+    system.check_ranges(scene.params, source)
     if scene.integrator not in INTEGRATORS:
         raise InputError(source, "integrator", f"unknown method {scene.integrator!r}",
                          "one of " + ", ".join(INTEGRATORS))
@@ -235,6 +254,23 @@ def _check_excitation(value, system, source):
     if value > 0 and system.name != "quadrotor_load":
         raise InputError(source, "excitation", f"is {value} for {system.name}, which has no thrusts to excite",
                          "0, or a quadrotor_load scene")
+
+
+def _graph_families(graph):
+    """The GraphSpecs of a scene's graph: each family a GraphDraws picks from, or the one spec."""
+    return graph.families if isinstance(graph, GraphDraws) else (graph,)
+
+
+def _check_graph(graph, source):
+    """The builders' arguments and seeds of a scene's graph (a GraphDraws: random builders on one N)."""
+    drawn = isinstance(graph, GraphDraws)
+    for spec in _graph_families(graph):
+        check_args(spec.builder, spec.args, source, "graph")
+        if drawn and (spec.builder not in RANDOM_BUILDERS or spec.n_nodes != graph.n_nodes):
+            raise InputError(source, "graph", f"draws from {spec.builder} on {spec.n_nodes} nodes",
+                             f"random builders on {graph.n_nodes} nodes each")
+        if spec.builder in RANDOM_BUILDERS and not spec.seeds and not drawn:
+            raise InputError(source, "graph.seeds", "is empty", "at least one seed")
 
 
 def _check_graph_ranges(spec, source):

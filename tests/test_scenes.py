@@ -14,7 +14,8 @@ EXAMPLE = os.path.join(os.path.dirname(data_gen.__file__), "scenes", "example_ge
 EXPECTED = ["coupled_pendulum", "pendulum_force", "lorenz3", "lorenz7", "lorenz10", "lorenz10_medium", "lorenz10_high", "lorenz10_10s",
             "gene16_er", "gene16_ba", "gene16_ws", "gene64_er", "gene64_ba", "gene64_ws", "gene16_ba_multi",
             "gene16_er_hot", "gene16_ba_hot", "gene16_ws_hot", "gene64_er_hot", "gene64_ba_hot", "gene64_ws_hot",
-            "gene16_ba_multi_hot", "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws", "quad3", "quad4",
+            "gene16_ba_multi_hot", "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws", "kuramoto_het10",
+            "kuramoto_het50_ba", "spring_pendulums_het4", "spring_pendulums_het10", "quad3", "quad4",
             "quad5", "quad6", "quad8", "quad12"]
 
 
