@@ -168,7 +168,7 @@ def test_files_carry_node_attributes_and_weighted_graphs_in_their_ranges(tmp_pat
         assert all(w_lo <= v <= w_hi for v in w.values()) and all(w[r, s] == w[s, r] for r, s in w)
     assert len({tuple(g.weights[:3]) for g in t.graphs}) == 6  # drawn afresh for each trajectory
     if t.system == "kuramoto_het":
-        np.testing.assert_allclose(np.sum(t.x**2, axis=-1), 1.0, atol=1e-8)  # the state stays on the circle
+        np.testing.assert_allclose(np.sum(t.x**2, axis=-1), 1.0, atol=1e-6)  # the state stays on the circle
         assert {"graph_family", "graph_seed"} <= set(t.aux)
 
 
