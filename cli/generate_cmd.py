@@ -21,8 +21,9 @@ from .main import claim_outputs, main, scheduler_option
 @click.option("--horizon", "-T", type=click.IntRange(min=1), help="Saved steps per trajectory T (x has T+1 states).")
 @click.option("--dt", type=click.FloatRange(min=0, min_open=True), help="Time between saved states.")
 @click.option("--seed", type=int,
-              help="Seed of the initial states (trajectory b uses SeedSequence(seed, spawn_key=(b,))); "
-                   "drawn parameters (lorenz H, kuramoto omega) keep the scene's system_seed.")
+              help="Seed of the initial states (trajectory b uses SeedSequence(seed, spawn_key=(b,))) and of what "
+                   "each trajectory draws for itself (the _het scenes' graphs, weights and node attributes); "
+                   "parameters shared by all (lorenz H, kuramoto omega) keep the scene's system_seed.")
 @click.option("--workers", type=click.IntRange(min=1), default=2, show_default=True,
               help="Processes integrating trajectories (local pool, or --scheduler local); the data do not depend "
                    "on it.")
