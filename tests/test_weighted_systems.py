@@ -237,11 +237,15 @@ def test_a_scene_file_weighs_fixed_graphs_per_trajectory(tmp_path):
     assert all(1 <= g.weights.min() and g.weights.max() <= 3 for g in t.graphs) and t.attrs["K"] == 0.5
 
 
-@pytest.mark.parametrize("params, field", [("l_min = 3.0", "params.l_min"), ("k_min = -1.0", "params.k_min"),
-                                           ("m_min = 0.0\nm_max = 1.0", "params.m_min")])
-def test_ranges_a_scene_file_cannot_draw_from(tmp_path, params, field):
+@pytest.mark.parametrize("system, params, field", [
+    ("spring_pendulums_het", "l_min = 3.0", "params.l_min"), ("spring_pendulums_het", "k_min = -1.0", "params.k_min"),
+    ("spring_pendulums_het", "m_min = 0.0\nm_max = 1.0", "params.m_min"),
+    # wider than numpy draws from: the frequencies' time scale (1e-308 s) refuses it first
+    ("kuramoto_het", "omega_min = -1e308\nomega_max = 1e308", "dt"),
+])
+def test_ranges_a_scene_file_cannot_draw_from(tmp_path, system, params, field):
     path = tmp_path / "bad.toml"
-    path.write_text(f'system = "spring_pendulums_het"\n[params]\n{params}\n'
+    path.write_text(f'system = "{system}"\n[params]\n{params}\n'
                     '[graph]\nbuilder = "edges"\nnodes = 3\nedges = [[0, 1], [1, 2]]\n')
     with pytest.raises(InputError) as e:
         read_scene(path)
