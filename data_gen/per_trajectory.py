@@ -54,28 +54,26 @@ def scene_graphs(scene):
         return SceneGraphs(graphs, np.arange(B) % len(graphs), scene.graph.describe())
     fixed = None if drawn else scene.graph.build()
     scalars = {**system.defaults, **scene.params}
-    graphs, attrs, picks = [], [], []
-    for b in range(B):
-        rng = parameter_rng(scene.seed, b)
-        graph, pick = _topology(scene.graph, fixed, b, rng)
-        picks.append(pick)
-        if system.draw_trajectory is not None:
-            weights, node = system.draw_trajectory(scalars, graph, rng)
-            graph = graph.reweighted(weights)
-            attrs.append(node)
-        graphs.append(graph)
-    out = SceneGraphs(graphs, np.arange(B), scene.graph.describe())
+    graphs, picks, attrs = zip(*(_trajectory(scene, system, scalars, fixed, b) for b in range(B)))
+    out = SceneGraphs(list(graphs), np.arange(B), scene.graph.describe())
     if drawn:
         out.aux = {"graph_family": np.array([p[0] for p in picks], dtype=np.int64),
                    "graph_seed": np.array([p[1] for p in picks], dtype=np.int64)}
-    if attrs:
+    if system.draw_trajectory is not None:
         out.node_attrs, out.attr_names = np.stack(attrs).astype(np.float64), system.attr_names
     return out
 
 
-def _topology(spec, fixed, b, rng):
-    """(graph, (family, seed) or None) of trajectory b: drawn from ``rng``, or graph b mod G."""
-    if fixed is not None:
-        return fixed[b % len(fixed)], None
-    graph, family, seed = spec.draw(rng)
-    return graph, (family, seed)
+def _trajectory(scene, system, scalars, fixed, b):
+    """(graph, (family, networkx seed) or None, node attributes or None) of trajectory b: its graph
+    drawn or graph b mod G of ``fixed``, weighted by the system's draw."""
+    rng = parameter_rng(scene.seed, b)
+    if fixed is None:
+        graph, family, seed = scene.graph.draw(rng)
+        pick = (family, seed)
+    else:
+        graph, pick = fixed[b % len(fixed)], None
+    if system.draw_trajectory is None:
+        return graph, pick, None
+    weights, node = system.draw_trajectory(scalars, graph, rng)
+    return graph.reweighted(weights), pick, node
