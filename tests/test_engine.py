@@ -177,29 +177,36 @@ def test_feature_major_param_cotangent_every_width(a, c, n, dtype, tol):
 
 @pytest.mark.parametrize("width", [1, 2, 3, 4, 5, 7, 8, 13])
 @pytest.mark.parametrize("self_msg", [False, True])
-def test_neighbour_sums_every_width(width, self_msg):
-    """The CSR walk (a compiled copy per narrow width, chunks of four beyond) and its transpose
-    against dense sums, on rows ``zoff`` into the arrays, with empty rows and an output offset."""
+@pytest.mark.parametrize("edge_weighted", [False, True])
+def test_neighbour_sums_every_width(width, self_msg, edge_weighted):
+    """The CSR walk (a compiled copy per narrow width, chunks of four beyond; plain or with edge
+    weights) and its transpose against dense sums, on rows ``zoff`` into the arrays, with empty
+    rows and an output offset."""
     rng = np.random.default_rng(width)
     m, zoff, i0, i1, col0, ocol0 = 23, 4, 6, 20, 2, 1
     A = (rng.random((m, m)) < 0.25) * 1.0
     A[i0 + 1] = 0  # a row with no neighbours
     np.fill_diagonal(A, 0)
     g = Graph.from_edges(m, np.argwhere(A), directed=True)  # node i hears j where A[i, j]
+    ew = np.empty(0)
+    if edge_weighted:
+        A[A > 0] = rng.uniform(-2, 2, int(A.sum()))
+        ew = A[A != 0]  # row-major: the CSR order
     indptr, indices = g.indptr, g.indices + zoff
     heard = A + np.eye(m) * self_msg
     src = rng.standard_normal((m, col0 + width + 1))
     weight = rng.random(m + zoff)
     out = np.full((i1 - i0, ocol0 + width), np.nan)
     kernels.layers.aggregate_tile(src, col0, width, np.empty((0, 0)), np.concatenate([np.zeros(zoff, np.int64), indptr]),
-                                  indices, weight, self_msg, i0 + zoff, i1 + zoff, zoff, out, ocol0)
+                                  indices, ew, weight, self_msg, i0 + zoff, i1 + zoff, zoff, out, ocol0)
     want = weight[i0 + zoff:i1 + zoff, None] * (heard @ src[:, col0:col0 + width])[i0:i1]
     np.testing.assert_allclose(out[:, ocol0:], want, rtol=1e-13, atol=1e-13)
     gcot = rng.standard_normal((m, width))
     t = Graph.from_edges(m, np.argwhere(A)[:, ::-1], directed=True)  # for sender j, who hears it
+    tew = A.T[A.T != 0] if edge_weighted else ew
     tout = np.full((m, ocol0 + width), np.nan)
     kernels.layers.transpose_tile(gcot, np.concatenate([np.zeros(zoff, np.int64), t.indptr]), t.indices + zoff,
-                                  self_msg, i0 + zoff, i1 + zoff, zoff, tout, ocol0)
+                                  tew, self_msg, i0 + zoff, i1 + zoff, zoff, tout, ocol0)
     np.testing.assert_allclose(tout[i0:i1, ocol0:], (heard.T @ gcot)[i0:i1], rtol=1e-13, atol=1e-13)
 
 

@@ -87,9 +87,9 @@ def update_tile(theta, dims, S_all, sums, graph, i0, i1, zoff, H0, A, T):
     H0: this tile's h0 rows; A, T (this tile's rows) keep a and t for the VJP.
     """
     dx, du, H, self_msg = dims[DX], dims[DU], dims[HIDDEN], dims[SELF_MSG]
-    indptr, indices, weight = graph
+    indptr, indices, weight, ew = graph
     _, _, _, _, psi, W_upd, b_upd, W_out, b_out = unpack(theta, dx + du, H, dx)
-    aggregate_tile(S_all, 0, H, sums, indptr, indices, weight, self_msg, i0, i1, zoff, A, 0)
+    aggregate_tile(S_all, 0, H, sums, indptr, indices, ew, weight, self_msg, i0, i1, zoff, A, 0)
     for r in range(i1 - i0):
         if _empty_row(indptr, self_msg, i0 + r):
             A[r, :] = psi
@@ -106,7 +106,7 @@ def update_vjp_tile(theta, dims, GK, graph, i0, i1, zoff, H0, A, T, gtheta, gagg
     row's cotangent of a goes to psi.  Adds into gtheta.
     """
     dx, du, H, self_msg = dims[DX], dims[DU], dims[HIDDEN], dims[SELF_MSG]
-    indptr, _, weight = graph
+    indptr, _, weight, _ = graph
     _, _, _, _, psi, W_upd, b_upd, W_out, b_out = unpack(theta, dx + du, H, dx)
     _, _, _, _, gpsi, gW_upd, gb_upd, gW_out, gb_out = unpack(gtheta, dx + du, H, dx)
     GO = dense_backward(_residual(H0, T), W_out, GK, gW_out, gb_out)

@@ -170,6 +170,33 @@ def row_sum4(src, col, nd, indptr, indices, row, zoff, self_row):
 
 
 @njit(inline="always", **JIT)
+def weighted_row_sum4(src, col, nd, indptr, indices, ew, row, zoff, self_row):
+    """row_sum4 with each neighbour's columns times its edge's weight ew[p] (a self message
+    counts once: it has no edge).  A copy of the walk rather than a flag in it, so that an
+    unweighted graph runs the plain sums' code."""
+    a0 = a1 = a2 = a3 = src.dtype.type(0)
+    if self_row >= 0:
+        a0 = src[self_row, col]
+        if nd > 1:
+            a1 = src[self_row, col + 1]
+        if nd > 2:
+            a2 = src[self_row, col + 2]
+        if nd > 3:
+            a3 = src[self_row, col + 3]
+    for p in range(indptr[row], indptr[row + 1]):
+        j = indices[p] - zoff
+        w = ew[p]
+        a0 += w * src[j, col]
+        if nd > 1:
+            a1 += w * src[j, col + 1]
+        if nd > 2:
+            a2 += w * src[j, col + 2]
+        if nd > 3:
+            a3 += w * src[j, col + 3]
+    return a0, a1, a2, a3
+
+
+@njit(inline="always", **JIT)
 def store4(out, r, col, nd, sums, w):
     """out[r, col + k] = sums[k] * w for k < nd (constant indices keep the sums in registers)."""
     out[r, col] = sums[0] * w
@@ -190,10 +217,26 @@ def row_sum(src, col0, width, indptr, indices, row, zoff, self_row, out, r, ocol
 
 
 @njit(inline="always", **JIT)
-def gather_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0):
+def weighted_row_sum(src, col0, width, indptr, indices, ew, row, zoff, self_row, out, r, ocol0, w):
+    """row_sum with the edges' weights ``ew``."""
+    for d0 in range(0, width, 4):
+        nd = min(4, width - d0)
+        store4(out, r, ocol0 + d0, nd, weighted_row_sum4(src, col0 + d0, nd, indptr, indices, ew, row, zoff,
+                                                          self_row), w)
+
+
+@njit(inline="always", **JIT)
+def gather_rows(src, col0, width, indptr, indices, ew, weight, self_msg, i0, i1, zoff, out, ocol0):
     """aggregate_tile's CSR walk for rows i0..i1 (inlined where ``width`` is a constant); an
-    empty ``weight`` weighs every row 1."""
+    empty ``weight`` weighs every row 1, an empty ``ew`` every edge."""
     weighted = weight.shape[0] > 0
+    if ew.shape[0] > 0:
+        for r in range(i1 - i0):
+            i = i0 + r
+            w = weight[i] if weighted else src.dtype.type(1)
+            weighted_row_sum(src, col0, width, indptr, indices, ew, i, zoff, i - zoff if self_msg else -1, out, r,
+                             ocol0, w)
+        return
     for r in range(i1 - i0):
         i = i0 + r
         w = weight[i] if weighted else src.dtype.type(1)
@@ -201,8 +244,10 @@ def gather_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zof
 
 
 @njit(**ORDERED_JIT)
-def aggregate_tile(src, col0, width, sums, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0):
-    """out[r, ocol0:ocol0+width] = weight[i] * (sum over row i [and i itself] of src[j, col0:]), i = i0 + r.
+def aggregate_tile(src, col0, width, sums, indptr, indices, ew, weight, self_msg, i0, i1, zoff, out, ocol0):
+    """out[r, ocol0:ocol0+width] = weight[i] * (sum over row i [and i itself] of ew[p] src[j, col0:]), i = i0 + r.
+
+    ``ew``: the edges' weights (row i's at ew[indptr[i]:indptr[i+1]]), or empty: every edge 1.
 
     ``sums`` holds the row sums already (rows ``i - zoff``: the dense path) or is empty
     (then the sum walks the CSR row).  The weight decides the aggregation (mean: 1/degree).
@@ -215,42 +260,63 @@ def aggregate_tile(src, col0, width, sums, indptr, indices, weight, self_msg, i0
             for d in range(width):
                 out[r, ocol0 + d] = sums[i0 + r - zoff, d] * weight[i0 + r]
     elif width == 3:
-        gather_rows(src, col0, 3, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+        gather_rows(src, col0, 3, indptr, indices, ew, weight, self_msg, i0, i1, zoff, out, ocol0)
     elif width == 2:
-        gather_rows(src, col0, 2, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+        gather_rows(src, col0, 2, indptr, indices, ew, weight, self_msg, i0, i1, zoff, out, ocol0)
     elif width == 4:
-        gather_rows(src, col0, 4, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+        gather_rows(src, col0, 4, indptr, indices, ew, weight, self_msg, i0, i1, zoff, out, ocol0)
     elif width == 1:
-        gather_rows(src, col0, 1, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+        gather_rows(src, col0, 1, indptr, indices, ew, weight, self_msg, i0, i1, zoff, out, ocol0)
     elif width <= 8:
-        gather_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+        gather_rows(src, col0, width, indptr, indices, ew, weight, self_msg, i0, i1, zoff, out, ocol0)
     else:
-        add_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0)
+        add_rows(src, col0, width, indptr, indices, ew, weight, self_msg, i0, i1, zoff, out, ocol0)
 
 
 @njit(inline="always", **JIT)
-def add_rows(src, col0, width, indptr, indices, weight, self_msg, i0, i1, zoff, out, ocol0):
-    """aggregate_tile's CSR walk for wide rows: each neighbour's row added into the output row."""
+def add_rows(src, col0, width, indptr, indices, ew, weight, self_msg, i0, i1, zoff, out, ocol0):
+    """aggregate_tile's CSR walk for wide rows: each neighbour's row added into the output row
+    (times its edge's weight when ``ew`` is not empty)."""
     weighted = weight.shape[0] > 0
+    edge_weighted = ew.shape[0] > 0
     for r in range(i1 - i0):
         i = i0 + r
         for d in range(width):
             out[r, ocol0 + d] = src[i - zoff, col0 + d] if self_msg else src.dtype.type(0)
         for p in range(indptr[i], indptr[i + 1]):
             j = indices[p] - zoff
-            for d in range(width):
-                out[r, ocol0 + d] += src[j, col0 + d]
+            if edge_weighted:
+                for d in range(width):
+                    out[r, ocol0 + d] += ew[p] * src[j, col0 + d]
+            else:
+                for d in range(width):
+                    out[r, ocol0 + d] += src[j, col0 + d]
         if weighted:
             for d in range(width):
                 out[r, ocol0 + d] *= weight[i]
 
 
 @njit(**JIT)
-def transpose_tile(g, tindptr, tindices, self_msg, i0, i1, zoff, out, ocol0):
-    """out[j, ocol0+d] = sum of g[i, d] over the nodes i that hear j [+ g[j, d]] (rows j - zoff).
+def transpose_tile(g, tindptr, tindices, tew, self_msg, i0, i1, zoff, out, ocol0):
+    """out[j, ocol0+d] = sum of w_ij g[i, d] over the nodes i that hear j [+ g[j, d]] (rows j - zoff).
 
     The transpose of the neighbour sum: ``g`` holds each receiver's (already weighted)
-    cotangent; the CSR transpose (tindptr, tindices) lists, for sender j, who hears it.
+    cotangent; the CSR transpose (tindptr, tindices) lists, for sender j, who hears it, and
+    ``tew`` the weights of those edges (empty: all 1).
     """
-    aggregate_tile(g, 0, g.shape[1], np.empty((0, 0), g.dtype), tindptr, tindices, np.empty(0, g.dtype), self_msg, i0, i1, zoff,
-                   out[i0 - zoff:i1 - zoff], ocol0)
+    aggregate_tile(g, 0, g.shape[1], np.empty((0, 0), g.dtype), tindptr, tindices, tew, np.empty(0, g.dtype),
+                   self_msg, i0, i1, zoff, out[i0 - zoff:i1 - zoff], ocol0)
+
+
+@njit(**JIT)
+def edge_cotangent(g, src, indptr, indices, i0, i1, zoff, gw):
+    """gw[p] += <g[i], src[j]> for every edge p = (i hears j) of rows i0..i1 (rows ``- zoff``):
+    the cotangent of an edge's weight, from the receiver's aggregate cotangent ``g`` and what
+    the sender sent, ``src`` (the rows of a node's gw are its own: no races between blocks)."""
+    for i in range(i0, i1):
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p] - zoff
+            acc = g.dtype.type(0)
+            for d in range(g.shape[1]):
+                acc += g[i - zoff, d] * src[j, d]
+            gw[p] += acc

@@ -141,7 +141,7 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
     (mcol0 = 0; half the memory a gather touches)."""
     dx, du, dm, H = dims[DX], dims[DU], dims[DM], dims[HIDDEN]
     self_msg, zero_msg, linear_agg = dims[SELF_MSG], dims[ZERO_MSG], dims[LINEAR]
-    indptr, indices, weight = graph
+    indptr, indices, weight, ew = graph
     n = i1 - i0
     c = dx + du
     VT = feature_major(V)
@@ -154,7 +154,7 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
     if zero_msg:
         VT[c:] = 0
     else:
-        aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, weight, self_msg, i0, i1, zoff, VT[c:].T, 0)
+        aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, ew, weight, self_msg, i0, i1, zoff, VT[c:].T, 0)
     KT = mlp_forward(theta, VT, feature_major(H1), feature_major(H2), dx + dm)
     if linear_agg:
         ncol = dx if linear_agg & LINEAR_STATE else dx + dm

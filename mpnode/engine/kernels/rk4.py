@@ -31,7 +31,8 @@ recompute them from the kept state, and return the parameter cotangent (one buff
 tile, reduced by the caller: deterministic, no races), the initial state's and, when the
 caller gives GU (T, M, du) rows, the controls' (each node's rows are its own: no races
 either).  ``dims``: the model's integers (slots in mpnode.engine.dims); ``graph`` =
-(indptr, indices, weight), ``tgraph`` = (tindptr, tindices) its transpose.
+(indptr, indices, weight, ew) -- ``weight`` each node's factor on its row's sum, ``ew`` the
+edges' weights or empty (all 1) -- and ``tgraph`` = (tindptr, tindices, tew) its transpose.
 """
 import numpy as np
 from numba import njit, prange
@@ -39,7 +40,7 @@ from numba import njit, prange
 from ..dims import DM, DU, DX, HIDDEN, KINEMATICS, KIND, L2S, SELF_MSG, ZERO_MSG
 from . import kinematics, l2s_field, mpnode_field
 from .feature_major import aligned_empty, dense_sum
-from .layers import JIT, transpose_tile
+from .layers import JIT, edge_cotangent, transpose_tile
 
 TILE = 192  # rows per tile inside a block (one block per thread: a few hundred nodes)
 STAGE_TILE = 256  # rows per parallel task of the stagewise drivers (one big graph: fewer, larger tasks)
@@ -177,10 +178,15 @@ def stage_range(stage, h, theta, dims, z, zin, zout, acc, u, graph, lo, hi, zoff
 
 
 @njit(**JIT)
-def substep_range(h, theta, dims, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C):
-    """One RK4 step of the closed node range lo..hi (z updated in place)."""
+def substep_range(h, theta, dims, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C, smsg):
+    """One RK4 step of the closed node range lo..hi (z updated in place); each stage's input
+    messages copied into smsg[stage] (rows i - zoff) unless it is empty (the edge weights'
+    cotangent reads them)."""
+    dx = dims[DX]
     for stage in range(4):
         zin, zout = stage_arrays(stage, z, za, zb)
+        if smsg.shape[1] > 0:
+            smsg[stage] = zin[:, dx:dx + smsg.shape[2]]
         stage_range(stage, h, theta, dims, z, zin, zout, acc, u, graph, lo, hi, zoff, A, sums, C)
 
 
@@ -234,19 +240,21 @@ def send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C, slot, r0, r1, gtheta, g
 
 @njit(**JIT)
 def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff, A, AT, sums, work, C, recompute,
-                      gtheta, gu):
+                      gtheta, gu, gw):
     """Reverse one RK4 step of the closed range lo..hi: returns the cotangent of its start state.
 
     zstart: the state at the step's start; a: the cotangent of the state at its end.  The
     four stages' caches C are the forward's, or, when ``recompute``, recomputed from zstart
     into C; then the stages are walked backwards.  u is held over the step, so its cotangent
-    (added into gu unless empty) sums over the four stages.
+    (added into gu unless empty) sums over the four stages; the edge weights' (indexed as the
+    CSR entries) is added into gw unless it is empty, and then an MP-NODE's stages must be
+    recomputed (their input messages are in no cache).
     """
-    z, za, zb, acc, gagg, gS, gh0 = work
+    z, za, zb, acc, gagg, gS, gh0, smsg = work
     kind, dx, self_msg = dims[KIND], dims[DX], dims[SELF_MSG]
     if recompute:
         z[:] = zstart
-        substep_range(h, theta, dims, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C)
+        substep_range(h, theta, dims, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C, smsg)
     gz = a.copy()
     gnext = za  # cotangent of the next stage's input (stage buffers are free now)
     gin = zb
@@ -258,11 +266,14 @@ def substep_vjp_range(h, theta, dims, zstart, a, u, graph, tgraph, lo, hi, zoff,
                             gtheta, gin, gagg, gh0, gu)
         if kind != L2S:
             target = gin
+        if gw.shape[0] > 0:
+            sent = C[2][stage] if kind == L2S else smsg[stage]
+            edge_cotangent(gagg, sent, graph[0], graph[1], lo, hi, zoff, gw)
         if AT.shape[0] > 0:
             dense_sum(AT, gagg[lo - zoff:hi - zoff], 0, target[lo - zoff:hi - zoff], tcol)
         else:
             for i0 in range(lo, hi, TILE):
-                transpose_tile(gagg, tgraph[0], tgraph[1], self_msg, i0, min(hi, i0 + TILE), zoff, target, tcol)
+                transpose_tile(gagg, tgraph[0], tgraph[1], tgraph[2], self_msg, i0, min(hi, i0 + TILE), zoff, target, tcol)
         for i0 in range(lo, hi, TILE):
             i1 = min(hi, i0 + TILE)
             send_vjp_tile(theta, dims, gS, gh0, i0, i1, zoff, C, stage, i0 - zoff, i1 - zoff, gtheta, gin, gu)
@@ -327,6 +338,7 @@ def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, den
         P = block_caches(kept, z0.shape[0], lo, hi)
         A = dense_block(dense_A, dense_n[b], dense_off[b])
         sums = np.empty((hi - lo, sent_width(dims)), z0.dtype)
+        smsg = np.empty((4, 0, 0), z0.dtype)
         z[:] = z0[lo:hi]
         out[0, lo:hi] = z0[lo:hi, :dx]
         if keep:
@@ -335,7 +347,7 @@ def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, den
         for t in range(T):
             for s in range(nsub[t]):
                 Ck = step_caches(P, k) if keep_caches else C
-                substep_range(hstep[t], theta, dims, z, za, zb, acc, U[t], graph, lo, hi, lo, A, sums, Ck)
+                substep_range(hstep[t], theta, dims, z, za, zb, acc, U[t], graph, lo, hi, lo, A, sums, Ck, smsg)
                 k += 1
                 if keep:
                     states[k, lo:hi] = z
@@ -345,15 +357,17 @@ def rollout_blocks(theta, dims, z0, U, graph, block_ptr, dense_n, dense_off, den
 
 @njit(parallel=True, **JIT)
 def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, dense_A, dense_AT, nsub, hstep, states,
-               kept, GX, gthetas, gx0, GU):
+               kept, GX, gthetas, gx0, GU, GW):
     """Reverse pass: cotangents GX (T+1, M, dx) of the output states -> gthetas[b] (block b's
     parameter cotangent) and gx0 (M, dx); the controls' cotangent added into GU (T, M, du)
-    unless GU has no rows (T, 0, du).  ``states`` and ``kept`` from rollout_blocks: without
-    kept caches, each step's stages are recomputed from its state."""
+    unless GU has no rows (T, 0, du), the edge weights' into GW (E,) unless it is empty.
+    ``states`` and ``kept`` from rollout_blocks: without kept caches, or for the edge weights'
+    cotangent of an MP-NODE, each step's stages are recomputed from its state."""
     dx = dims[DX]
     T = GX.shape[0] - 1
     sw = sent_width(dims)
-    recompute = kept[0].shape[0] == 0
+    edge_messages = GW.shape[0] > 0 and dims[KIND] != L2S
+    recompute = kept[0].shape[0] == 0 or edge_messages
     for b in prange(len(block_ptr) - 1):
         lo = block_ptr[b]
         hi = block_ptr[b + 1]
@@ -362,7 +376,8 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
         P = block_caches(kept, GX.shape[1], lo, hi)
         gS = np.empty((n if dims[KIND] == L2S else 0, sw), GX.dtype)
         gh0 = np.empty((n if dims[KIND] == L2S else 0, dims[HIDDEN]), GX.dtype)
-        work = (z, za, zb, acc, np.empty((n, sw), GX.dtype), gS, gh0)
+        smsg = np.empty((4, n if edge_messages else 0, dims[DM]), GX.dtype)
+        work = (z, za, zb, acc, np.empty((n, sw), GX.dtype), gS, gh0, smsg)
         A = dense_block(dense_A, dense_n[b], dense_off[b])
         AT = dense_block(dense_AT, dense_n[b], dense_off[b])
         sums = np.empty((n, sw), GX.dtype)
@@ -376,7 +391,7 @@ def vjp_blocks(theta, dims, U, graph, tgraph, block_ptr, dense_n, dense_off, den
                 k -= 1
                 Ck = C if recompute else step_caches(P, k)
                 gz = substep_vjp_range(hstep[t], theta, dims, states[k, lo:hi], gz, U[t], graph, tgraph, lo, hi, lo, A,
-                                       AT, sums, work, Ck, recompute, gtheta, GU[t])
+                                       AT, sums, work, Ck, recompute, gtheta, GU[t], GW)
         gx0[lo:hi] = gz[:, :dx] + GX[0, lo:hi]
 
 
@@ -525,10 +540,10 @@ def vjp_stagewise(theta, dims, U, graph, tgraph, nsub, hstep, states, GX, gtheta
                     i0 = k * STAGE_TILE
                     i1 = min(M, i0 + STAGE_TILE)
                     if kind == L2S:
-                        transpose_tile(gagg, tgraph[0], tgraph[1], self_msg, i0, i1, 0, gS, 0)
+                        transpose_tile(gagg, tgraph[0], tgraph[1], tgraph[2], self_msg, i0, i1, 0, gS, 0)
                         send_vjp_tile(theta, dims, gS, gh0, i0, i1, 0, C, stage, i0, i1, gthetas[k], gin, GU[t])
                     else:
-                        transpose_tile(gagg, tgraph[0], tgraph[1], self_msg, i0, i1, 0, gin, dx)
+                        transpose_tile(gagg, tgraph[0], tgraph[1], tgraph[2], self_msg, i0, i1, 0, gin, dx)
                     gnew[i0:i1] += gin[i0:i1]
                 gnext, gin = gin, gnext
             gz[:] = gnew
