@@ -1,7 +1,8 @@
 """Time mpnode's rollout and training step (loss + exact gradient, no optimiser) on S1-S6.
 
 S1-S5 are the workloads of the peer harness (torch / JAX; same graphs, sizes, dt = 0.05,
-T = 50, classic RK4) so that the figures compare with it.  For each case and model kind
+T = 50, classic RK4) so that the figures compare with it; S5w is S5 with a weight on every edge
+(uniform in [0.5, 1.5]: what weighted neighbour sums cost).  For each case and model kind
 it prints the FLOP floor -- the field's multiply-adds x 4 stages x steps x nodes at the
 rate of a large GEMM *measured in the same run* (the training step counts 3x the
 forward) -- and our ratio to it.  Medians of >= 7 timed calls after warm-up; float32 and
@@ -113,6 +114,8 @@ CASES = {
                graph=lambda: Graph.from_networkx(nx.barabasi_albert_graph(10, 5, seed=42))),
     "S5": dict(label="big", N=20000, dx=3, dm=3, B=1,
                graph=lambda: Graph.from_networkx(nx.random_regular_graph(6, 20000, seed=0))),
+    "S5w": dict(label="big weighted", N=20000, dx=3, dm=3, B=1, weighted=True,
+                graph=lambda: Graph.from_networkx(nx.random_regular_graph(6, 20000, seed=0))),
     "R200k": dict(label="rr6 200k", N=200_000, dx=3, dm=3, B=1, big=True, graph=lambda: random_regular(6, 200_000)),
     "S6": dict(label="rr6 1M", N=1_000_000, dx=3, dm=3, B=1, big=True, graph=lambda: random_regular(6, 1_000_000)),
     "L6": dict(label="grid 1M", N=1_000_000, dx=3, dm=3, B=1, big=True, graph=lambda: shuffled_grid(1000)),
@@ -195,6 +198,8 @@ def run_case(case, kind, dtype, gflops, profile=False, batch=None):
     big = c.get("big", False)
     spec = spec_for(case, kind)
     graph = block_diagonal([c["graph"]()] * (batch or c["B"]))
+    if c.get("weighted"):  # the same graph with a weight on every edge: the weighted sums' cost
+        graph = graph.reweighted(np.random.default_rng(2).uniform(0.5, 1.5, graph.n_edges))
     m = graph.n_nodes
     theta = glorot_init(spec, seed=0, dtype=dtype)
     x = np.random.default_rng(1).standard_normal((T + 1, m, c["dx"])).astype(dtype)

@@ -22,6 +22,7 @@ import numpy as np
 
 from . import layouts
 from .kinematics import derivatives_of
+from .plan import edge_array
 from .schedule import time_grid
 from .spec import checked_controls, rule_weights
 
@@ -34,12 +35,16 @@ def mlp(p, v):
 
 
 def aggregate(p, src, weight):
-    """Node i of src (..., N, w): weight[i] * (the sum of src over the nodes i hears [and i
-    itself with self_messages]); a node that hears nobody has weight 0."""
+    """Node i of src (..., N, w): weight[i] * (the sum of w_ij src_j over the nodes j i hears
+    [and i itself with self_messages]); a node that hears nobody has weight 0; w_ij the edge's
+    ``edge_weight`` (1 when the graph has none)."""
     out = src.copy() if p["self_messages"] else np.zeros_like(src)
     rows = p["heard_rows"]
+    heard = src[..., p["indices"], :]
+    if "edge_weight" in p:
+        heard = heard * p["edge_weight"][:, None]
     if len(rows):  # each row that hears someone is its own segment of the CSR indices
-        out[..., rows, :] += np.add.reduceat(src[..., p["indices"], :], p["indptr"][rows], axis=-2)
+        out[..., rows, :] += np.add.reduceat(heard, p["indptr"][rows], axis=-2)
     return out * weight[:, None]
 
 
@@ -140,16 +145,21 @@ def field_arrays(spec, theta, graph):
         p["kinematics"] = spec.kinematics.matrices(spec.state_dim, spec.state_width, theta.dtype)
     if spec.kind != "node":
         agg = spec.aggregation
-        p.update(_graph_arrays(spec, graph), weight=_weights(spec, graph, theta.dtype, agg.mlp))
+        p.update(_graph_arrays(spec, graph, theta.dtype), weight=_weights(spec, graph, theta.dtype, agg.mlp))
         if agg.own_linear is not None:
             p["linear_weight"] = _weights(spec, graph, theta.dtype, agg.own_linear)
     return p
 
 
-def _graph_arrays(spec, graph):
-    """The CSR rows, the nodes that hear someone (``heard_rows``) and nobody (``empty_rows``)."""
-    return dict(self_messages=bool(spec.self_messages), indptr=graph.indptr, indices=graph.indices,
-                heard_rows=np.flatnonzero(graph.degrees() > 0), empty_rows=empty_rows(spec, graph))
+def _graph_arrays(spec, graph, dtype):
+    """The CSR rows, the nodes that hear someone (``heard_rows``) and nobody (``empty_rows``),
+    and the edges' weights (``edge_weight``) when the graph has them."""
+    out = dict(self_messages=bool(spec.self_messages), indptr=graph.indptr, indices=graph.indices,
+               heard_rows=np.flatnonzero(graph.degrees() > 0), empty_rows=empty_rows(spec, graph))
+    w = edge_array(graph, dtype, spec.aggregation.weight_scale)
+    if w.size:
+        out["edge_weight"] = w
+    return out
 
 
 def _weights(spec, graph, dtype, rule):
@@ -161,7 +171,7 @@ def aggregator(spec, graph, dtype, rule=None):
     """The neighbour aggregation on ``graph`` as a function src (M, w) -> (M, w) (`aggregate`):
     weight 1/count (mean), 1 (sum) or 1/mean_degree (scaled).  rule: another than the spec's
     (the linear path's own)."""
-    p = _graph_arrays(spec, graph)
+    p = _graph_arrays(spec, graph, dtype)
     weight = _weights(spec, graph, dtype, rule or spec.aggregation.mlp)
     return lambda src: aggregate(p, src, weight)
 

@@ -46,6 +46,8 @@ class Plan:
     dense_A, dense_AT : flat arrays of those matrices and their transposes
     weight : ndarray -- `Aggregation.weights`: (M,) each node's factor on the sum of its row,
         then M more when the linear path has its own rule
+    edge_weight : ndarray (E,) -- each CSR entry's weight in the kernels' dtype, or empty for an
+        unweighted graph (the kernels then run their plain sums)
     order : ndarray (M,) or None -- the kernels' node k is the user's node order[k] (a
         locality order for one large graph, see `locality_order`); None: the user's order
     csr : Graph -- the graph as the kernels read it (renumbered by ``order``)
@@ -56,8 +58,10 @@ class Plan:
                  blocks_per_thread=1, ordering="auto"):
         self.blocks = None
         self.order = None
-        self.csr = Graph(graph.indptr, graph.indices)  # not the graph: the cache holds it weakly
+        self.csr = Graph(graph.indptr, graph.indices, weights=graph.weights)  # the cache holds the graph weakly
         self._transposed = None
+        self.dtype = np.dtype(dtype)
+        self.weight_scale = aggregation.weight_scale
         self.weight = aggregation.weights(graph, self_messages, dtype)
         m = graph.n_nodes
         parts = graph.parts or (graph,)
@@ -94,7 +98,8 @@ class Plan:
                 continue
             if id(g) not in seen:
                 a = np.zeros((g.n_nodes, g.n_nodes), dtype=dtype)
-                a[np.repeat(np.arange(g.n_nodes), g.degrees()), g.indices] = 1
+                w = edge_array(g, dtype, self.weight_scale)
+                a[np.repeat(np.arange(g.n_nodes), g.degrees()), g.indices] = w if w.size else 1
                 if self_messages:  # += : a self-loop in the row and hearing oneself both count
                     a[np.diag_indices(g.n_nodes)] += 1
                 seen[id(g)] = offset
@@ -111,6 +116,19 @@ class Plan:
         if self._transposed is None:
             self._transposed = transpose(self.csr)
         return self._transposed
+
+    @property
+    def edge_weight(self):
+        return edge_array(self.csr, self.dtype, self.weight_scale)
+
+    def kernel_graph(self):
+        """The graph tuple the kernels read: (indptr, indices, weight, edge weights)."""
+        return self.csr.indptr, self.csr.indices, self.weight, self.edge_weight
+
+    def kernel_transposed(self):
+        """The transpose as the kernels read it: (indptr, indices, edge weights)."""
+        t = self.transposed
+        return t.indptr, t.indices, edge_array(t, self.dtype, self.weight_scale)
 
     def to_kernel_order(self, a, axis=0):
         """``a`` with its node axis (0, or 1 of a (T, M, ...) array) in the kernels' order (``a``
@@ -138,6 +156,15 @@ class Plan:
             rows = _slices(a)
             rows_to_user_order(rows, self.order, np.empty_like(rows[0]))
         return a
+
+
+def edge_array(graph, dtype, scale=None):
+    """The weights the kernels multiply a graph's messages by, w / scale (`Aggregation.weight_scale`)
+    in ``dtype``; an empty array (every edge 1) for an unweighted graph under a model of such."""
+    if graph.weights is None and scale is None:
+        return np.zeros(0, dtype)
+    w = np.ones(graph.n_edges) if graph.weights is None else graph.weights
+    return np.ascontiguousarray(w / (scale or 1.0), dtype=dtype)
 
 
 def _slices(a):
@@ -197,8 +224,9 @@ def renumbered(graph, order):
     indptr = np.zeros(m + 1, dtype=np.int64)
     np.cumsum(deg, out=indptr[1:])
     starts = np.repeat(graph.indptr[order] - indptr[:-1], deg)
-    indices = position[graph.indices[starts + np.arange(graph.n_edges, dtype=np.int64)]]
-    return Graph(indptr, indices, self_loops=graph.self_loops)
+    entries = starts + np.arange(graph.n_edges, dtype=np.int64)
+    weights = None if graph.weights is None else graph.weights[entries]
+    return Graph(indptr, position[graph.indices[entries]], self_loops=graph.self_loops, weights=weights)
 
 
 def _worth_dense(g):
@@ -241,5 +269,6 @@ def transpose(graph):
     order = np.argsort(graph.indices, kind="stable")
     indptr = np.zeros(graph.n_nodes + 1, dtype=np.int64)
     np.cumsum(np.bincount(graph.indices, minlength=graph.n_nodes), out=indptr[1:])
-    return Graph(indptr, rows[order], self_loops=graph.self_loops)
+    weights = None if graph.weights is None else graph.weights[order]
+    return Graph(indptr, rows[order], self_loops=graph.self_loops, weights=weights)
 

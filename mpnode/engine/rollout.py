@@ -45,8 +45,8 @@ def _whole_systems(spec, x0, u, graph):
     if m % n:
         raise ValueError(f"{m} nodes are not whole systems of {n} nodes (a node model's n_nodes)")
     kin = None if spec.kinematics is None else spec.kinematics.for_systems(n, dx)
-    inner = replace(spec, kind="mpnode", state_dim=n * dx, control_dim=n * spec.control_dim, n_nodes=None,
-                    kinematics=kin)
+    inner = replace(spec, kind="mpnode", state_dim=n * dx, control_dim=n * spec.control_dim, attr_dim=0,
+                    n_nodes=None, kinematics=kin)
     u = None if u is None else np.asarray(u).reshape(u.shape[0], m // n, n * spec.control_dim)
     return inner, np.asarray(x0).reshape(m // n, n * dx), u, _edgeless(m // n)
 
@@ -93,7 +93,7 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
     n_states = int(nsub.sum()) + 1 if keep_states else 0
     states = _touched((n_states, m if keep_states else 0, spec.state_width), theta.dtype)
     zend = np.empty_like(z0)
-    g = (plan.csr.indptr, plan.csr.indices, plan.weight)
+    g = plan.kernel_graph()
     kept = None
     if keep_states:  # a VJP follows: its driver compiles on the other core while this one compiles the rollout's
         compiling.compile_vjp_ahead(theta.dtype, plan.blocks is None)
@@ -211,7 +211,10 @@ def forward_with_vjp(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", k
     state, gx : ndarray, shape (n_steps+1, M, dx), and returns (gtheta like theta,
     gx0 of shape (M, dx)): the gradient of sum(gx * x) with respect to theta and x0;
     ``vjp(gx, controls=True)`` returns (gtheta, gx0, gu) with gu (n_steps, M, du) the
-    gradient with respect to u (model predictive control; training does not ask for it).
+    gradient with respect to u (model predictive control; training does not ask for it);
+    ``edge_weights=True`` appends gw (E,), the gradient with respect to the graph's edge weights
+    in its CSR order (1 for an unweighted graph's edges; fitting a network's parameters), which
+    needs the block drivers (a graph the plan splits, or driver="blocks").
     vjp may be called several times; it keeps one state per RK4 step alive
     (``keep_states=False``: no vjp, the rollout alone).  Compiled kernels only (numba):
     the NumPy path rolls out but does not train.
@@ -231,6 +234,7 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
     z0 = np.asarray(z0)
     shape = (n_steps + 1, z0.shape[0], spec.state_dim)
     u_shape = (n_steps, z0.shape[0], spec.control_dim)
+    n_edges = graph.n_edges
     if spec.kind == "node":
         intervals = _per_system(spec, intervals)
         spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
@@ -241,11 +245,16 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
         return x, None
     theta = np.ascontiguousarray(theta)
 
-    def vjp(gx, controls=False):
+    def vjp(gx, controls=False, edge_weights=False):
         if np.shape(gx) != shape:
             raise ValueError(f"the cotangent has shape {np.shape(gx)}, the rollout {shape}")
-        gtheta, gx0, gu = _reverse(spec, theta, plan, u, grid, states, kept, gx, controls)
-        return (gtheta, gx0.reshape(shape[1:])) + ((gu.reshape(u_shape),) if controls else ())
+        gtheta, gx0, gu, gw = _reverse(spec, theta, plan, u, grid, states, kept, gx, controls, edge_weights)
+        out = (gtheta, gx0.reshape(shape[1:]))
+        if controls:
+            out += (gu.reshape(u_shape),)
+        if edge_weights:  # a node model never reads the graph: its edges' cotangents are 0
+            out += (gw if gw.size == n_edges else np.zeros(n_edges, theta.dtype),)
+        return out
 
     return x, vjp
 
@@ -258,22 +267,24 @@ def compile_vjp_ahead(spec, dtype, graph, driver="auto", ordering="auto"):
     compiling.compile_vjp_ahead(dtype, plan_for(graph, spec, dtype, driver, ordering).blocks is None)
 
 
-def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False):
+def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False, edge_weights=False):
     """The kernels' reverse pass for the cotangent ``gx`` of every output: (gtheta, gx0 (M, dx),
-    gu (T, M, du) or None) in the user's node order."""
+    gu (T, M, du) or None, gw (E,) or None) in the user's node order."""
     from . import kernels
 
+    if edge_weights and plan.blocks is None:
+        raise ValueError("the edge weights' cotangent needs the block drivers: roll out with driver='blocks'")
     n_params = theta.size
     theta = _kernel_theta(spec, theta)
     n_steps, m = u.shape[0], states.shape[1]
     gx = np.asarray(gx, dtype=theta.dtype).reshape(-1, m, spec.state_dim)
     gx = np.ascontiguousarray(plan.to_kernel_order(gx, axis=1))
-    tgraph = plan.transposed
     n_parts = len(plan.blocks) - 1 if plan.blocks is not None else -(-m // kernels.STAGE_TILE)
     gthetas = np.empty((n_parts, theta.size), dtype=theta.dtype)
     gx0 = np.empty((m, spec.state_dim), dtype=theta.dtype)
     gu = np.zeros((n_steps, m if controls else 0, spec.control_dim), dtype=theta.dtype)
-    g, gt = (plan.csr.indptr, plan.csr.indices, plan.weight), (tgraph.indptr, tgraph.indices)
+    gw = np.zeros(plan.csr.n_edges if edge_weights else 0, dtype=theta.dtype)
+    g, gt = plan.kernel_graph(), plan.kernel_transposed()
     nsub, hstep = grid
     compiling.before_call("vjp_stagewise" if plan.blocks is None else "vjp_blocks", theta.dtype)
     with single_threaded_blas():
@@ -281,8 +292,9 @@ def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False):
             kernels.vjp_stagewise(theta, spec.dims, u, g, gt, nsub, hstep, states, gx, gthetas, gx0, gu)
         else:
             kernels.vjp_blocks(theta, spec.dims, u, g, gt, plan.blocks, plan.dense_n, plan.dense_off,
-                               plan.dense_A, plan.dense_AT, nsub, hstep, states, kept, gx, gthetas, gx0, gu)
+                               plan.dense_A, plan.dense_AT, nsub, hstep, states, kept, gx, gthetas, gx0, gu, gw)
     if plan.order is not None:
         gx0[plan.order] = gx0.copy()
     gtheta = gthetas.sum(axis=0, dtype=theta.dtype)[:n_params]
-    return gtheta, gx0, plan.to_user_order(gu) if controls else None
+    gw /= plan.weight_scale or 1.0  # the kernels weigh by w / weight_scale
+    return gtheta, gx0, plan.to_user_order(gu) if controls else None, gw if edge_weights else None

@@ -44,12 +44,17 @@ class Aggregation:
     target : what the path adds to: "all" ([dx/dt, dm/dt]) or "state" (dx/dt alone, so the
         messages' own dynamics never hear the degree)
     mean_degree : the training graphs' mean in-degree, which "scaled" divides by
+    weight_scale : None for a model of unweighted graphs; else the typical size of the training
+        graphs' edge weights, which every weight is divided by: node i then hears
+        (w_ij / weight_scale) m_j from neighbour j, a sum of inputs of order one whatever the
+        weights' units (a negative weight turns the neighbour's message around)
     """
 
     mlp: str = "mean"
     linear: str = None
     target: str = "all"
     mean_degree: float = None
+    weight_scale: float = None
 
     def __post_init__(self):
         _one_of(self.mlp, AGGREGATIONS, "aggregation")
@@ -63,23 +68,28 @@ class Aggregation:
                              f"{self.mlp}/{self.linear}", "a number with a 'scaled' aggregation, and only with it")
         if self.mean_degree is not None and not self.mean_degree > 0:
             raise InputError("model", "mean_degree", f"is {self.mean_degree!r}", "a number > 0")
+        if self.weight_scale is not None and not (np.isfinite(self.weight_scale) and self.weight_scale > 0):
+            raise InputError("model", "weight_scale", f"is {self.weight_scale!r}", "a finite number > 0")
 
     @classmethod
     def from_options(cls, aggregation, linear_aggregate=False, linear_aggregation=None, linear_target="all",
-                     mean_degree=None):
+                     mean_degree=None, weight_scale=None):
         """The Aggregation of the options a user (or a model file) gives: ``linear_aggregation``
         or a ``linear_target`` other than "all" imply the linear path (``linear_aggregate``),
         which otherwise reads the MLP's own aggregate."""
         target = linear_target or "all"
         on = bool(linear_aggregate or linear_aggregation or target != "all")
         linear = (linear_aggregation or aggregation) if on else None
-        return cls(aggregation, linear, target, None if mean_degree is None else float(mean_degree))
+        return cls(aggregation, linear, target, None if mean_degree is None else float(mean_degree),
+                   None if weight_scale is None else float(weight_scale))
 
     def options(self):
         """The inverse of `from_options`: the attributes a model file records (absent ones left out)."""
         out = {"aggregation": self.mlp}
         if self.mean_degree is not None:
             out["mean_degree"] = float(self.mean_degree)
+        if self.weight_scale is not None:
+            out["weight_scale"] = float(self.weight_scale)
         if self.linear is not None:
             out["linear_aggregate"] = 1
             if self.linear != self.mlp:
@@ -138,6 +148,10 @@ class FieldSpec:
         message_dim 0) or "node" (a plain neural ODE of a whole system of ``n_nodes``
         nodes; message_dim 0, the graph is ignored)
     state_dim, control_dim, message_dim, hidden : dx, du, dm and the hidden width H
+    attr_dim : dp, how many of the control_dim columns (the last ones) are the node's static
+        attributes (its length, mass, natural frequency): the network hears them as it hears
+        its controls, held over every step (mpnode.model appends them); the kernels never
+        tell them apart
     dt, substeps : the time a step advances and the RK4 steps it takes
     self_messages : every node also hears its own message;  zero_messages : messages held
         at 0 (the paper's ablation)
@@ -152,6 +166,7 @@ class FieldSpec:
     kind: str = "mpnode"
     state_dim: int
     control_dim: int = 0
+    attr_dim: int = 0
     message_dim: int = 0
     hidden: int
     dt: float
@@ -184,6 +199,9 @@ class FieldSpec:
                              f"{self.message_dim}{' and zero_messages' if self.zero_messages else ''}",
                              "an mpnode model with messages (message_dim > 0, no zero_messages)")
 
+        if not (isinstance(self.attr_dim, (int, np.integer)) and 0 <= self.attr_dim <= self.control_dim):
+            raise InputError("model", "attr_dim", f"is {self.attr_dim!r} with control_dim {self.control_dim}",
+                             "an integer from 0 to control_dim (the last control columns that are node attributes)")
         if self.kinematics is not None:
             if self.kind == "l2s":
                 raise InputError("model", "kinematics", "is set for an l2s model",
@@ -198,6 +216,8 @@ class FieldSpec:
                "zero_messages": int(self.zero_messages), **self.aggregation.options()}
         if self.n_nodes is not None:
             out["n_nodes"] = self.n_nodes
+        if self.attr_dim:
+            out["attr_dim"] = self.attr_dim
         if self.encoder_window:
             out["encoder_window"] = self.encoder_window
         if self.kinematics is not None:
@@ -210,8 +230,10 @@ class FieldSpec:
         kind = a.get("kind", "mpnode")
         aggregation = Aggregation.from_options(a.get("aggregation", default_aggregation(kind)),
                                                bool(a.get("linear_aggregate", 0)), a.get("linear_aggregation"),
-                                               a.get("linear_target", "all"), a.get("mean_degree"))
+                                               a.get("linear_target", "all"), a.get("mean_degree"),
+                                               a.get("weight_scale"))
         return cls(kind=kind, state_dim=int(a["state_dim"]), control_dim=int(a["control_dim"]),
+                   attr_dim=int(a.get("attr_dim", 0)),
                    message_dim=int(a.get("message_dim", 0)), hidden=int(a["hidden"]), dt=float(a["dt"]),
                    substeps=int(a["substeps"]), self_messages=bool(a.get("self_messages", 0)),
                    zero_messages=bool(a.get("zero_messages", 0)), aggregation=aggregation,
