@@ -95,7 +95,7 @@ start_option = click.option(
 
 
 def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20, substeps=None,
-                        substeps_tol=None, max_substeps=None, warmup=0, truth=None, start="encoder"):
+                        substeps_tol=None, max_substeps=None, warmup=0, truth=None, start="encoder", ignore_attrs=False):
     """Evaluate, and time the reference simulator beside the model when the file names one:
     returns (EvalResult, report dict)."""
     from data_gen.invariants import invariant_of
@@ -108,7 +108,7 @@ def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20
     result = evaluate(model, traj, source=source, allow_dt_mismatch=allow_dt, substeps=substeps,
                       substeps_tol=substeps_tol or stepsize.DEFAULT_TOL,
                       max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS, warmup=warmup, truth=truth,
-                      start=start, invariant=invariant and invariant[1],
+                      start=start, invariant=invariant and invariant[1], ignore_attrs=ignore_attrs,
                       state_names=dimension_names(model.fitted(traj).attrs, model.spec.state_dim))
     report = {"data": source, **result.summary(), "state_names": traj.attrs.get("state_names"),
               **({"invariant": invariant[0]} if invariant else {})}
@@ -264,6 +264,8 @@ def format_reference(ref):
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of text.")
 @click.option("--allow-dt-mismatch", is_flag=True,
               help="Roll the model out with the file's dt even if it was trained with another.")
+@click.option("--ignore-attrs", is_flag=True,
+              help="Leave out DATA's node attributes and edge weights when MODEL was trained without them.")
 @click.option("--reference-sample", type=click.IntRange(min=0), default=20, show_default=True,
               help="Trajectories the reference simulator is timed on (0: skip the reference).")
 @click.option("--warmup", type=click.IntRange(min=0), default=0, show_default=True, metavar="K",
@@ -278,8 +280,8 @@ def format_reference(ref):
 @plot_option("truth against prediction for the first trajectories and nodes, per state dimension, and the "
              "error over time with the predictable horizon")
 @substeps_options
-def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, reference_sample, warmup, start, truth,
-             plot, substeps, substeps_tol, max_substeps):
+def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, ignore_attrs, reference_sample, warmup, start,
+             truth, plot, substeps, substeps_tol, max_substeps):
     """Roll MODEL out from every initial state of DATA and report error and speed.
 
     Error: normalised MSE (squared error / per-dimension variance of DATA's true
@@ -344,7 +346,7 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, referenc
     if warning:
         click.echo(f"warning: {warning}", err=True)
     result, report = evaluate_and_report(model, traj, data, allow_dt_mismatch, reference_sample, substeps,
-                                         substeps_tol, max_substeps, warmup, clean, start)
+                                         substeps_tol, max_substeps, warmup, clean, start, ignore_attrs)
     report["model"] = model_file
     report["warnings"] = ([warning] if warning else []) + warn_off_range(report["off_range"])
     click.echo(json.dumps(report, indent=2, allow_nan=False) if as_json else format_report(report, model_file))

@@ -116,6 +116,9 @@ def training_options(f):
                      help="Train on windows of W steps (after any --curriculum) while the model is still chosen "
                      "by its validation error over the files' full horizon (0: train on the full horizon).  "
                      "Default: the recipe's (0 unless the README's recipe table says otherwise)."),
+        click.option("--ignore-attrs", is_flag=True, default=False,
+                     help="Learn as if the data had neither node attributes nor edge weights (by default a model "
+                          "hears both whenever the files have them)."),
         click.option("--resume", is_flag=True,
                      help="Continue the run whose checkpoint (OUTPUT.state) is beside -o; its settings are kept "
                           "except --epochs and --time-limit."),

@@ -34,7 +34,7 @@ SAMPLES = {
     "clip_mode": "global", "val_split": 0.25, "noise": 0.0, "loss": "mse", "patience": 7, "lr_decay": 0.25,
     "min_lr": 1e-5, "seed": 3, "norm": "refit", "max_bad_steps": 2, "blowup": 50.0, "time_limit": 120.0,
     "checkpoint_seconds": 1.0, "curriculum": (2, 4), "curriculum_epochs": 3, "schedule": "cosine",
-    "val_graphs": 1, "ensemble": 2, "bootstrap": True, "split_seed": 5, "input_noise": 0.01, "train_window": 4,
+    "val_graphs": 1, "ensemble": 2, "bootstrap": True, "split_seed": 5, "input_noise": 0.01, "train_window": 4, "ignore_attrs": True,
 }
 #: a value each option refuses
 BAD = {
@@ -45,7 +45,7 @@ BAD = {
     "clip_mode": "sometimes", "val_split": 1.0, "noise": -1.0, "loss": "l1", "patience": 0, "lr_decay": 1.5,
     "min_lr": -1.0, "seed": -1, "norm": "twice", "max_bad_steps": 0, "blowup": -1.0, "time_limit": 0.0,
     "checkpoint_seconds": -1.0, "curriculum": (4, 2), "curriculum_epochs": 0, "schedule": "linear",
-    "val_graphs": -1, "ensemble": 0, "bootstrap": "yes", "split_seed": -1, "input_noise": -1.0, "train_window": -1,
+    "val_graphs": -1, "ensemble": 0, "bootstrap": "yes", "split_seed": -1, "input_noise": -1.0, "train_window": -1, "ignore_attrs": "yes",
 }
 #: the one option no `mpnode train` flag sets: fine-tuning's normalisation, `finetune --refit-norm/--keep-norm`
 FINETUNE_ONLY = {"norm": {"refit": ["--refit-norm"], "keep": ["--keep-norm"]}}

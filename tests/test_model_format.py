@@ -26,7 +26,8 @@ def rollout_from_file(path, traj):
         theta = np.concatenate([f[f"params/{n}"][()].astype(np.float64).ravel() for n in names])
         x_mean, x_std = f["norm/x_mean"][()], f["norm/x_std"][()]
     aggregation = SimpleNamespace(mlp=a.get("aggregation", "mean"), mean_degree=a.get("mean_degree"),
-                                  own_linear=a.get("linear_aggregation"), target=a.get("linear_target", "all"))
+                                  own_linear=a.get("linear_aggregation"), target=a.get("linear_target", "all"),
+                                  weight_scale=a.get("weight_scale"))
     spec = SimpleNamespace(kind=kind, state_dim=int(a["state_dim"]), control_dim=int(a["control_dim"]),
                            message_dim=int(a["message_dim"]), hidden=int(a["hidden"]), dt=float(a["dt"]),
                            substeps=int(a["substeps"]), zero_messages=bool(a["zero_messages"]),

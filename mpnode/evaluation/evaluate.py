@@ -18,6 +18,7 @@ from mpnode.base.errors import InputError, NumericalError
 from mpnode import engine
 from mpnode.data import Trajectories
 from mpnode.model import batch_graph, check_data, ranges
+from mpnode.model.inputs import for_model
 from mpnode.model.ensemble import Ensemble, models_of
 from mpnode.model.start import fit_initial_state
 
@@ -210,7 +211,7 @@ def with_substeps(model, substeps, x0, graphs, graph_index, u, horizon, tol, max
 def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=16384, substeps=None,
              substeps_tol=stepsize.DEFAULT_TOL, max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS,
              horizon_thresholds=HORIZON_THRESHOLDS, check_stability=True, warmup=0, truth=None, start="encoder",
-             invariant=None, state_names=None):
+             invariant=None, state_names=None, ignore_attrs=False):
     """Roll ``model`` out on every trajectory of ``traj`` and measure error and speed (EvalResult).
 
     Predictions fall at the file's observation times.  warmup : K, the first K observations
@@ -227,9 +228,11 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     invariant : x (B, T+1, N, dx) -> (B, T+1), a quantity the true dynamics conserve, whose drift
     along the predictions is measured (result.invariant_drift); the physics stays with the caller.
     state_names : what to call the state dimensions in the off-range entries.
+    ignore_attrs : leave out node attributes and edge weights the model was not trained with
+    (mpnode.model.inputs.for_model).
     """
     groups = file_groups(traj, source)
-    traj = model.fitted(traj)  # room for the model's latent dimensions, never observed
+    traj = for_model(model, model.fitted(traj), source, ignore_attrs)  # latent dimensions' room; attributes as controls
     truth = None if truth is None else _with_latent(np.asarray(truth, dtype=np.float64), traj.state_dim)
     check_data(model, [traj], [source], allow_dt_mismatch=allow_dt_mismatch or not traj.regular)
     if traj.regular and not math.isclose(traj.dt, model.spec.dt, rel_tol=1e-9, abs_tol=0.0):
@@ -300,12 +303,12 @@ def start_states(model, traj, warmup, start="encoder"):
     return x0
 
 
-def continue_from(model, traj, warmup=1, start="encoder", source="data"):
+def continue_from(model, traj, warmup=1, start="encoder", source="data", ignore_attrs=False):
     """(x0 (B, N, dx), steps): where simulations of ``traj``'s trajectories start -- the state at
     each one's first observation time, estimated from its first ``warmup`` observations
     (`start_states`) -- and the steps of the model's dt that reach the last observation of the
     longest, so that a simulation covers the observed span and goes on from there."""
-    traj = model.fitted(traj)
+    traj = for_model(model, model.fitted(traj), source, ignore_attrs)
     check_data(model, [traj], [source], allow_dt_mismatch=True)
     if warmup > traj.horizon + 1:
         raise InputError(source, "x", f"has {traj.horizon + 1} observations per trajectory, fewer than the "
@@ -494,4 +497,6 @@ def subset(traj, idx):
                         graph_index=np.asarray(traj.graph_index)[idx], attrs=dict(traj.attrs),
                         params=dict(traj.params), aux=dict(traj.aux),
                         t=None if traj.t is None else np.asarray(traj.t)[idx],
-                        truth=None if traj.truth is None else np.asarray(traj.truth)[idx])
+                        truth=None if traj.truth is None else np.asarray(traj.truth)[idx],
+                        node_attrs=None if traj.node_attrs is None else np.asarray(traj.node_attrs)[idx],
+                        attr_names=traj.attr_names)

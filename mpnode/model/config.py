@@ -90,15 +90,17 @@ class ModelConfig:
         """Whether the model needs the training graphs' mean in-degree (a "scaled" aggregation)."""
         return "scaled" in (self.aggregation, self.linear_aggregation)
 
-    def spec(self, state_dim, control_dim, dt, n_nodes=None, mean_degree=None):
+    def spec(self, state_dim, control_dim, dt, n_nodes=None, mean_degree=None, attr_dim=0, weight_scale=None):
         """The engine's FieldSpec of a model of these options for data with ``state_dim``,
-        ``control_dim`` and ``dt`` (a node model: ``n_nodes``; "scaled": ``mean_degree``): its
+        ``control_dim`` and ``dt`` (a node model: ``n_nodes``; "scaled": ``mean_degree``; the last
+        ``attr_dim`` controls node attributes; weighted graphs: their ``weight_scale``): its
         state is the data's ``state_dim`` dimensions and then the ``latent_dims``."""
         state_dim = check_int(state_dim, "model", "state_dim", 1)
         return self._spec(state_dim + self.latent_dims, control_dim, dt, n_nodes, mean_degree,
-                          Kinematics.parse(self.kinematics))
+                          Kinematics.parse(self.kinematics), attr_dim, weight_scale)
 
-    def _spec(self, state_dim, control_dim, dt, n_nodes=None, mean_degree=None, kinematics=None):
+    def _spec(self, state_dim, control_dim, dt, n_nodes=None, mean_degree=None, kinematics=None, attr_dim=0,
+              weight_scale=None):
         state_dim, control_dim = check_int(state_dim, "model", "state_dim", 1), check_int(control_dim, "model",
                                                                                            "control_dim", 0)
         dt = check_number(dt, "model", "dt", positive=True)
@@ -107,8 +109,9 @@ class ModelConfig:
         mpnode = self.kind == "mpnode"
         aggregation = Aggregation.from_options(self.aggregation or default_aggregation(self.kind),
                                                self.linear_aggregate, self.linear_aggregation, self.linear_target,
-                                               mean_degree if self.uses_mean_degree else None)
-        return FieldSpec(kind=self.kind, state_dim=state_dim, control_dim=control_dim,
+                                               mean_degree if self.uses_mean_degree else None,
+                                               weight_scale if self.kind != "node" else None)
+        return FieldSpec(kind=self.kind, state_dim=state_dim, control_dim=control_dim, attr_dim=attr_dim,
                          message_dim=self.message_dim if mpnode else 0, hidden=self.hidden, dt=dt,
                          substeps=self.substeps, self_messages=self.self_messages,
                          zero_messages=self.zero_messages and mpnode, aggregation=aggregation, n_nodes=n_nodes,

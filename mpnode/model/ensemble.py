@@ -73,9 +73,10 @@ class Ensemble:
         return len(self.members)
 
     def __getattr__(self, name):
-        # spec, kind, dtype, latent_dims, normalisation and their helpers: the members share them
+        # spec, kind, dtype, latent_dims, node attributes, normalisation and their helpers: the members share them
         if name in ("spec", "kind", "dtype", "latent_dims", "x_mean", "x_std", "u_mean", "u_std", "fitted",
-                    "normalize_x", "denormalize_x", "normalize_u", "check_nodes") and "members" in self.__dict__:
+                    "normalize_x", "denormalize_x", "normalize_u", "check_nodes", "attr_names",
+                    "controls_of") and "members" in self.__dict__:
             return getattr(self.__dict__["members"][0], name)
         raise AttributeError(name)
 

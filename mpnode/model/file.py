@@ -1,5 +1,6 @@
 """Model files (docs/model-format.md, version 2; 3 for a model with the linear aggregate path;
-4 with an initial-state encoder; 5 for an ensemble; 6 with kinematics; version 1 still reads):
+4 with an initial-state encoder; 5 for an ensemble; 6 with kinematics; 7 hearing node attributes
+or edge weights; version 1 still reads):
 validated reader, atomic writer.
 
 The reader returns what the file holds (spec, flat parameters, normalisation, extra
@@ -25,7 +26,11 @@ ENCODER_VERSION = 4
 ENSEMBLE_VERSION = 5
 #: written only for a model (or an ensemble) with kinematics, which an older reader would drop
 KINEMATICS_VERSION = 6
-VERSIONS = (1, FORMAT_VERSION, LINEAR_PATH_VERSION, ENCODER_VERSION, ENSEMBLE_VERSION, KINEMATICS_VERSION)
+#: written only for a model (or an ensemble) that hears node attributes or edge weights, which an
+#: older reader would run without them
+NETWORK_VERSION = 7
+VERSIONS = (1, FORMAT_VERSION, LINEAR_PATH_VERSION, ENCODER_VERSION, ENSEMBLE_VERSION, KINEMATICS_VERSION,
+            NETWORK_VERSION)
 #: the datasets under ensemble/ of an ensemble file: the spread's scale (dx,), then per member (K,)
 ENSEMBLE_ARRAYS = ("spread_scale", "member_seed", "member_epoch", "member_val_loss")
 #: the optional group of what the model saw in training (mpnode.model.ranges), and its key in attrs;
@@ -36,6 +41,8 @@ SEEN, SEEN_ATTR = "seen", "seen_ranges"
 def version_of(spec, ensemble=False):
     """The oldest format version that holds ``spec`` (of an ensemble's members when ``ensemble``):
     an older reader then refuses what it would misread."""
+    if spec.attr_dim or spec.aggregation.weight_scale is not None:
+        return NETWORK_VERSION
     if spec.kinematics is not None:
         return KINEMATICS_VERSION
     if ensemble:
@@ -74,6 +81,8 @@ _TYPES = {
                       " or ".join(LINEAR_TARGETS) + " (what the linear aggregate path adds to)"),
     "encoder_window": (lambda v: _is_int(v) and v >= 1, "an integer >= 1 (the initial-state encoder's observations)"),
     "kinematics": (lambda v: isinstance(v, str), "text: terms D:S or qD:S separated by commas (model-format.md)"),
+    "attr_dim": (lambda v: _is_int(v) and v >= 1, "an integer >= 1 (the last control columns that are node attributes)"),
+    "weight_scale": (lambda v: _is_number(v) and v > 0, "a number > 0 (the training graphs' mean edge weight size)"),
 }
 _SPEC_ATTRS = set(_TYPES) | {"format", "format_version", "activation", "integrator", "kind", "aggregation",
                              "ensemble_size"}
@@ -121,8 +130,10 @@ class _Attrs:
         featured = version > 1 or "ensemble_size" in self.a or spec.kinematics is not None
         if featured and version != version_of(spec, "ensemble_size" in self.a):
             raise InputError(self.path, "format_version", f"is {version} with linear_aggregate {int(spec.linear_path)}, "
-                             f"encoder_window {spec.encoder_window}, ensemble_size {self.a.get('ensemble_size')} "
-                             f"and kinematics {self.a.get('kinematics')!r}",
+                             f"encoder_window {spec.encoder_window}, ensemble_size {self.a.get('ensemble_size')}, "
+                             f"kinematics {self.a.get('kinematics')!r}, attr_dim {spec.attr_dim} and weight_scale "
+                             f"{spec.aggregation.weight_scale}",
+                             f"{NETWORK_VERSION} exactly for a model with node attributes or edge weights, else "
                              f"{KINEMATICS_VERSION} exactly for a model with kinematics, else {ENSEMBLE_VERSION} "
                              f"exactly for an ensemble (ensemble_size), else {ENCODER_VERSION} "
                              f"exactly when the model has an initial-state encoder, else {LINEAR_PATH_VERSION} "
@@ -175,6 +186,7 @@ def read_model(path):
                     raise InputError(path, f"norm/{key}", "has a value <= 0", "standard deviations > 0")
             ensemble = None if k is None else _ensemble_arrays(f, path, k, dx)
             extra = {name: v for name, v in attrs.a.items() if name not in _SPEC_ATTRS}
+            _check_attr_names(extra.get("attr_names"), spec.attr_dim, path)
             if SEEN in f:
                 extra[SEEN_ATTR] = _seen(f, path)
     except InputError:
@@ -191,6 +203,14 @@ def read_model(path):
     if ensemble is not None:
         out["ensemble"] = ensemble
     return out
+
+
+def _check_attr_names(names, attr_dim, path):
+    """A model of node attributes names each one: the data it runs on must name them alike."""
+    if not attr_dim:
+        return
+    if not (isinstance(names, (list, tuple)) and len(names) == attr_dim and all(isinstance(n, str) for n in names)):
+        raise InputError(path, "attr_names", f"is {names!r}", f"a list of {attr_dim} names (one per node attribute)")
 
 
 def _ensemble_arrays(f, path, k, dx):

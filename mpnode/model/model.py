@@ -31,7 +31,8 @@ class Model:
     theta : ndarray, shape (P,) -- flat parameters, float32 or float64 (mpnode.engine.layouts)
     spec : mpnode.engine.FieldSpec -- kind, dimensions, dt, substeps, aggregation, message switches
     x_mean, x_std : ndarray, shape (dx,) -- the model works on (x - x_mean) / x_std
-    u_mean, u_std : ndarray, shape (du,) -- the same for controls
+    u_mean, u_std : ndarray, shape (du,) -- the same for controls (the node attributes, when the
+        model has them, are its last spec.attr_dim control columns: normalised like them)
     attrs : dict -- extra attributes saved with the model (history, provenance, seed)
     """
 
@@ -55,18 +56,23 @@ class Model:
     # ---- construction ----------------------------------------------------
     @classmethod
     def create(cls, state_dim, control_dim=0, *, dt=0.05, seed=0, n_nodes=None, mean_degree=None, config=None,
-               **options):
+               attr_names=(), weight_scale=None, **options):
         """A new model with Glorot-uniform weights and zero biases drawn from ``seed``.
 
         options : `ModelConfig`'s fields (kind, message_dim, hidden, aggregation, latent_dims, ...),
         over ``config``'s (default: the defaults).  What the data decide: ``state_dim`` (the data's
         dimensions: the model's state adds its latent ones), dt, ``n_nodes`` (a node model's
-        system size) and ``mean_degree`` (the "scaled" aggregation's divisor).
+        system size), ``mean_degree`` (the "scaled" aggregation's divisor), the node attributes'
+        ``attr_names`` (heard after the ``control_dim`` controls) and weighted graphs'
+        ``weight_scale`` (mpnode.model.inputs).
         """
         config = configured(options, config)
-        spec = config.spec(state_dim, control_dim, dt, n_nodes, mean_degree)
+        controls = control_dim + len(attr_names) if attr_names else control_dim  # checked by spec
+        spec = config.spec(state_dim, controls, dt, n_nodes, mean_degree, len(attr_names), weight_scale)
         seed = check_int(seed, "Model.create", "seed", 0)
         attrs = {"seed": seed, **({"latent_dims": config.latent_dims} if config.latent_dims else {})}
+        if attr_names:
+            attrs["attr_names"] = list(attr_names)
         return cls(layouts.glorot_init(spec, seed=seed, dtype=np.dtype(config.dtype)), spec, attrs=attrs)
 
     @classmethod
@@ -119,6 +125,35 @@ class Model:
         return self.theta.dtype
 
     @property
+    def attr_names(self):
+        """The node attributes the model hears (their names, as in the data it learned from)."""
+        return list(self.attrs.get("attr_names", []))[:self.spec.attr_dim]
+
+    def controls_of(self, u, node_attrs, b, n, steps, source="node_attrs"):
+        """The controls the network hears, (B, T, N, du + dp) in the data's units: u, then the
+        node attributes held over every step (None when the model has neither).
+
+        node_attrs : (B, N, dp) or (N, dp) (shared by the B trajectories), or None when the model
+        has none or u holds them already (its last columns: mpnode.model.inputs.for_model's data)."""
+        dp = self.spec.attr_dim
+        if node_attrs is None:
+            if dp and np.shape(u)[-1:] != (self.spec.control_dim,):
+                raise InputError(source, "node_attrs", "is missing",
+                                 f"the {dp} node attributes this model was trained with: {', '.join(self.attr_names)}")
+            return u
+        a = np.asarray(node_attrs, dtype=np.float64)
+        if not dp:
+            raise InputError(source, "node_attrs", f"has {a.shape[-1] if a.ndim else 0} attributes per node, but the "
+                             "model was trained without node attributes", "no node attributes (or --ignore-attrs)")
+        if a.ndim == 2:
+            a = np.broadcast_to(a, (b,) + a.shape)
+        if a.shape != (b, n, dp) or not np.all(np.isfinite(a)):
+            what = f"has shape {a.shape}" if a.shape != (b, n, dp) else "is not finite everywhere"
+            raise InputError(source, "node_attrs", what, f"finite numbers of shape ({b}, {n}, {dp}) or ({n}, {dp})")
+        held = np.broadcast_to(a[:, None], (b, steps, n, dp))
+        return held if u is None else np.concatenate([np.asarray(u, dtype=np.float64), held], axis=3)
+
+    @property
     def params(self):
         """Named views into theta (W1 b1 W2 b2 W3 b3, or the l2s arrays)."""
         return layouts.split(self.theta, layouts.param_shapes(self.spec))
@@ -152,13 +187,17 @@ class Model:
                              f"(kind node) was trained on {self.spec.n_nodes}",
                              f"systems of exactly {self.spec.n_nodes} nodes (an mpnode or l2s model runs on any graph)")
 
-    def rollout(self, x0, graph, u=None, steps=None, backend="auto", times=None):
+    def rollout(self, x0, graph, u=None, steps=None, backend="auto", times=None, node_attrs=None):
         """Simulate B trajectories from their initial states (messages start at 0).
 
         x0 : ndarray, shape (B, N, dx) or (N, dx), finite (for observations with values nobody
             measured, or noisy ones, `initial_state` estimates it)
-        graph : Graph shared by all B trajectories, or a list of B Graphs (each on N nodes)
-        u : ndarray, shape (B, T, N, du), or None when the model has no controls
+        graph : Graph shared by all B trajectories, or a list of B Graphs (each on N nodes); a
+            model of weighted graphs hears each neighbour by its edge's weight (Graph.weights)
+        u : ndarray, shape (B, T, N, du), or None when the model has no controls (with the
+            attributes held as its last columns when node_attrs is None)
+        node_attrs : (B, N, dp) or (N, dp) the nodes' static attributes, for a model that has
+            them (`attr_names`), else None
         steps : T (defaults to u's length, or to times')
         times : (B, T+1) the times of the outputs (NaN after a trajectory's end), or None: every dt
         backend : "auto" (the compiled kernels; the NumPy path when numba cannot be
@@ -176,6 +215,7 @@ class Model:
         steps = _steps(steps, u, times)
         b, n, dx = x0.shape
         self.check_nodes(n)
+        u = self.controls_of(u, node_attrs, b, n, steps)
         flat = batch_graph(graph, b)
         un = None if u is None else to_time_major(self.normalize_u(np.asarray(u)))
         iv = None if times is None else np.repeat(node_intervals(times), n, axis=1)

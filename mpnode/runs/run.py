@@ -83,10 +83,12 @@ def new_model(data, config, train_config=None):
                              "one node count for a plain neural ODE (kind node)")
         n_nodes = sizes.pop()
     mean_degree = data.mean_in_degree(config.self_messages) if config.uses_mean_degree else None
-    spec = config.spec(dx, first.control_dim, first.dt, n_nodes, mean_degree)
+    spec = config.spec(dx, first.control_dim, first.dt, n_nodes, mean_degree, len(data.attr_names),
+                       data.weight_scale)  # the data's controls: node attributes included (TrainingData)
     check_training_memory(spec, data, train_config, config.dtype)
-    model = Model.create(dx, first.control_dim, dt=first.dt, seed=train_config.seed, n_nodes=n_nodes,
-                         mean_degree=mean_degree, config=config)
+    model = Model.create(dx, first.control_dim - len(data.attr_names), dt=first.dt, seed=train_config.seed, n_nodes=n_nodes,
+                         mean_degree=mean_degree, config=config, attr_names=data.attr_names,
+                         weight_scale=data.weight_scale)
     x_mean, x_std, u_mean, u_std = data.normalization()
     model.x_mean, model.x_std = x_mean, x_std
     if u_mean is not None:

@@ -23,6 +23,7 @@ import numpy as np
 
 from mpnode.base.errors import InputError
 from mpnode.model import batch_graph
+from mpnode.model.inputs import attr_names_of, attrs_as_controls, weight_scale, without_attrs
 from mpnode.model.renormalise import renormalised
 
 from .learnable import check_learnable
@@ -196,15 +197,22 @@ class TrainingData:
     """The training files made ready once: checked, split, fingerprinted, with the statistics a
     new model takes from its training split (normalisation, mean in-degree).
 
-    datasets : list of Trajectories;  sources : their names (for messages)
+    datasets : list of Trajectories, node attributes as their last controls (mpnode.model.inputs)
+    sources : their names (for messages)
     split : list of (train idx, val idx) per file (`make_split`)
+    attr_names : the node attributes' names;  weight_scale : the edge weights' mean size, or None
     """
 
     def __init__(self, datasets, config, sources=None):
-        self.datasets = list(datasets)
-        if not self.datasets:
+        datasets = list(datasets)
+        if not datasets:
             raise InputError("training data", "files", "none given", "at least one trajectory file")
-        self.sources = list(sources or [f"data[{i}]" for i in range(len(self.datasets))])
+        self.sources = list(sources or [f"data[{i}]" for i in range(len(datasets))])
+        if config.ignore_attrs:
+            datasets = [without_attrs(traj) for traj in datasets]
+        self.attr_names = attr_names_of(datasets, self.sources)
+        self.weight_scale = weight_scale(datasets)
+        self.datasets = [attrs_as_controls(traj) for traj in datasets]
         check_same_kind(self.datasets, self.sources)
         self.seed, self.noise, self.bootstrap = config.seed, config.noise, config.bootstrap
         self.split_settings = split_settings(config)

@@ -43,6 +43,7 @@ class TrainConfig:
     budget: the epochs, or the time limit when that comes first); val_graphs: hold out
     that many whole graphs of every file with more graphs for validation (mpnode.training.batches).
     input_noise and train_window are the long-rollout options (mpnode.training.loop).
+    ignore_attrs: learn as if the data had neither node attributes nor edge weights.
     The defaults are the command line's (`mpnode train --help` says what each does).
     """
 
@@ -75,6 +76,7 @@ class TrainConfig:
     split_seed: int = None
     input_noise: float = 0.0
     train_window: int = 0
+    ignore_attrs: bool = False
 
     def check(self):
         """Raise InputError naming the option for a value that cannot work."""
@@ -139,6 +141,7 @@ class TrainConfig:
         if self.split_seed is not None:
             self.split_seed = check_int(self.split_seed, where, "split_seed", 0)
         self.bootstrap = check_bool(self.bootstrap, where, "bootstrap")
+        self.ignore_attrs = check_bool(self.ignore_attrs, where, "ignore_attrs")
         for name in ("lr", "beta1", "beta2", "eps", "clip", "val_split", "noise", "input_noise", "lr_decay", "min_lr",
                      "blowup", "checkpoint_seconds"):
             setattr(self, name, check_number(getattr(self, name), where, name, least=0))

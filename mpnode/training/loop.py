@@ -44,6 +44,7 @@ from mpnode.base.oserrors import FileSystemError, file_error
 from mpnode.engine import layouts
 from mpnode.evaluation import metrics
 from mpnode.model import check_data, encoder
+from mpnode.model.inputs import check_training_inputs
 
 from . import losses
 from .batches import TrainingData, epoch_batches, split_settings
@@ -362,6 +363,7 @@ def start_state(model, data, config, output, resume, sources):
         raise InputError(state_path(output), "fingerprint", "the checkpoint was made with other training data",
                          "the same data files, in the same order, as the interrupted run")
     state.fingerprint = data.fingerprint
+    check_training_inputs(state.model, data)
     check_data(state.model, data.datasets, data.sources)
     return state, data
 

@@ -82,11 +82,12 @@ def batch_value_and_grad(spec, theta, batch, loss, visible, start_noise=None):
     return total, gtheta
 
 
-def loss_and_grad(model, x, graph, u=None, loss="huber"):
+def loss_and_grad(model, x, graph, u=None, loss="huber", node_attrs=None):
     """Loss of the model's rollouts from x[:, 0] against x[:, 1..T], and its exact gradient.
 
     x : ndarray, shape (B, T+1, N, dx), in data units (normalised with the model's constants)
     graph : Graph shared by all B, or a list of B Graphs; u : (B, T, N, du) or None
+    node_attrs : (B, N, dp) or (N, dp) for a model of node attributes, else None
     loss : "huber" (delta 1) or "mse" on normalised states, summed over state dimensions
     and steps 1..T and averaged over the B*N nodes (mpnode.training.losses).
     Returns (loss, gtheta) with gtheta shaped like model.theta.
@@ -95,6 +96,7 @@ def loss_and_grad(model, x, graph, u=None, loss="huber"):
     b, t1, n, dx = x.shape
     model.check_nodes(n)
     xn = to_time_major(model.normalize_x(x))
+    u = model.controls_of(u, node_attrs, b, n, t1 - 1)
     un = None if u is None else to_time_major(model.normalize_u(np.asarray(u)))
     value, gtheta, _ = value_and_grad(model.spec, model.theta, xn, batch_graph(graph, b), un, loss)
     return value, gtheta

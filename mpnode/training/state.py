@@ -168,7 +168,8 @@ def _same_model(model, spec, name, value):
     """Whether setting model option ``name`` to ``value`` leaves the model of ``spec`` as it is."""
     try:
         other = dataclasses.replace(model, **{name: value})
-        again = other.spec(spec.state_dim - model.latent_dims, spec.control_dim, spec.dt, spec.n_nodes, spec.aggregation.mean_degree)
+        again = other.spec(spec.state_dim - model.latent_dims, spec.control_dim, spec.dt, spec.n_nodes,
+                           spec.aggregation.mean_degree, spec.attr_dim, spec.aggregation.weight_scale)
     except (InputError, TypeError, ValueError):
         return False
     return again == spec and other.dtype == model.dtype
