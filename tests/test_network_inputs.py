@@ -30,16 +30,17 @@ def test_a_model_hears_its_attributes_as_controls_held_over_every_step():
         m.rollout(x0, ring(4), steps=5)
 
 
-def test_the_attributes_cotangent_is_the_held_controls_summed_over_steps():
-    """What fitting a network's parameters through a model reads: sum over steps of the VJP's
-    controls columns of the attributes, against central differences in float64."""
+def test_the_attributes_cotangent_matches_finite_differences():
+    """What fitting a network's parameters through a model reads (vjp(..., node_attrs=True): the
+    attributes' control columns summed over the steps), against central differences in float64."""
     m = Model.create(1, 0, dt=0.1, message_dim=2, hidden=8, seed=2, attr_names=["rate"], config=ModelConfig(dtype="float64"))
     rng = np.random.default_rng(3)
     x0, a = rng.uniform(-1, 1, (4, 1)), rng.uniform(0.2, 2, (4, 1))
     gx = rng.standard_normal((7, 4, 1))
     held = np.broadcast_to(a, (6, 4, 1))
     _, vjp = engine.forward_with_vjp(m.spec, m.theta, x0, ring(4), held, 6)
-    ga = vjp(gx, controls=True)[2].sum(axis=0)
+    ga = vjp(gx, node_attrs=True)[2]
+    assert ga.shape == (4, 1)
     for i in range(4):
         e = np.zeros_like(a)
         e[i] = 1e-5

@@ -212,6 +212,8 @@ def forward_with_vjp(spec, theta, x0, graph, u=None, n_steps=1, driver="auto", k
     gx0 of shape (M, dx)): the gradient of sum(gx * x) with respect to theta and x0;
     ``vjp(gx, controls=True)`` returns (gtheta, gx0, gu) with gu (n_steps, M, du) the
     gradient with respect to u (model predictive control; training does not ask for it);
+    ``node_attrs=True`` appends ga (M, dp), the gradient with respect to the node attributes (the
+    last attr_dim control columns, held over every step, as the kernels read them);
     ``edge_weights=True`` appends gw (E,), the gradient with respect to the graph's edge weights
     in its CSR order (1 for an unweighted graph's edges; fitting a network's parameters), which
     needs the block drivers (a graph the plan splits, or driver="blocks").
@@ -234,7 +236,7 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
     z0 = np.asarray(z0)
     shape = (n_steps + 1, z0.shape[0], spec.state_dim)
     u_shape = (n_steps, z0.shape[0], spec.control_dim)
-    n_edges = graph.n_edges
+    n_edges, attr_dim = graph.n_edges, spec.attr_dim
     if spec.kind == "node":
         intervals = _per_system(spec, intervals)
         spec, z0, u, graph = _whole_systems(spec, z0, u, graph)
@@ -245,13 +247,16 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
         return x, None
     theta = np.ascontiguousarray(theta)
 
-    def vjp(gx, controls=False, edge_weights=False):
+    def vjp(gx, controls=False, edge_weights=False, node_attrs=False):
         if np.shape(gx) != shape:
             raise ValueError(f"the cotangent has shape {np.shape(gx)}, the rollout {shape}")
-        gtheta, gx0, gu, gw = _reverse(spec, theta, plan, u, grid, states, kept, gx, controls, edge_weights)
+        gtheta, gx0, gu, gw = _reverse(spec, theta, plan, u, grid, states, kept, gx, controls or node_attrs,
+                                       edge_weights)
         out = (gtheta, gx0.reshape(shape[1:]))
         if controls:
             out += (gu.reshape(u_shape),)
+        if node_attrs:  # held over every step: the sum of their columns' cotangents
+            out += (gu.reshape(u_shape)[:, :, u_shape[2] - attr_dim:].sum(axis=0),)
         if edge_weights:  # a node model never reads the graph: its edges' cotangents are 0
             out += (gw if gw.size == n_edges else np.zeros(n_edges, theta.dtype),)
         return out
