@@ -452,6 +452,8 @@ def learned_seconds_per_trajectory(model, traj, k, repeats=3):
     batch (best of ``repeats``): the number to set beside the reference simulator's."""
     x0 = np.asarray(traj.x)[:k, 0]
     u = None if traj.u is None else np.asarray(traj.u)[:k]
+    if model.spec.attr_dim:  # held over the horizon, as evaluation rolls them out
+        u = model.controls_of(u, np.asarray(traj.node_attrs)[:k], k, traj.n_nodes, traj.horizon)
     best = math.inf
     for _ in range(repeats):
         start = time.perf_counter()
