@@ -12,12 +12,46 @@ import numpy as np
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph
 
-#: builder -> (networkx function, names of its arguments after n, in call order)
+#: the most lines a bus of power_grid_graph has (the IEEE 300-bus case's busiest has 11)
+GRID_MAX_DEGREE = 12
+#: the mean degree of power_grid_graph is uniform in this range (the IEEE cases': 2.4 to 3.0)
+GRID_MEAN_DEGREE = (2.2, 3.2)
+
+
+def power_grid_graph(n, seed=None):
+    """A random connected grid of n buses, meshed as transmission grids are: a tree grown by
+    attaching each new bus to one before it with probability proportional to its degree + 1, then
+    lines between buses two or three lines apart (local loops) up to a mean degree uniform in
+    GRID_MEAN_DEGREE; no bus gets more than GRID_MAX_DEGREE lines.  A networkx Graph."""
+    rng = np.random.default_rng(seed)
+    g = nx.empty_graph(n)
+    degree = np.zeros(n)
+    for k in range(1, n):
+        w = np.where(degree[:k] < GRID_MAX_DEGREE, degree[:k] + 1, 0)
+        i = int(rng.choice(k, p=w / w.sum()))
+        g.add_edge(k, i)
+        degree[[k, i]] += 1
+    target = max(n - 1, round(rng.uniform(*GRID_MEAN_DEGREE) * n / 2))
+    for _ in range(100 * n):  # each try closes a loop, unless the bus drawn has no room or no bus near
+        if g.number_of_edges() >= target:
+            break
+        u = int(rng.integers(n))
+        near = [v for v, d in nx.single_source_shortest_path_length(g, u, cutoff=3).items()
+                if d >= 2 and degree[v] < GRID_MAX_DEGREE]
+        if near and degree[u] < GRID_MAX_DEGREE:
+            v = near[int(rng.integers(len(near)))]
+            g.add_edge(u, v)
+            degree[[u, v]] += 1
+    return g
+
+
+#: builder -> (graph function, names of its arguments after n, in call order)
 RANDOM_BUILDERS = {
     "gnp": (nx.gnp_random_graph, ("p",)),
     "gnm": (nx.gnm_random_graph, ("m",)),
     "barabasi_albert": (nx.barabasi_albert_graph, ("m",)),
     "watts_strogatz": (nx.watts_strogatz_graph, ("k", "p")),
+    "power_grid": (power_grid_graph, ()),
 }
 #: builders that need no seed: every node hears every other, or an explicit edge list
 FIXED_BUILDERS = ("complete", "edges")
@@ -59,8 +93,9 @@ class GraphSpec:
     def call(self, seed):
         """The networkx call of a random builder with ``seed`` (a number, or where it is kept)."""
         fn, names = RANDOM_BUILDERS[self.builder]
-        args = ", ".join(f"{a}={self.args[a]!r}" for a in names)
-        return f"networkx.{fn.__name__}(n={self.n_nodes}, {args}, seed={seed})"
+        args = "".join(f"{a}={self.args[a]!r}, " for a in names)
+        module = "networkx" if fn.__module__.startswith("networkx") else fn.__module__
+        return f"{module}.{fn.__name__}(n={self.n_nodes}, {args}seed={seed})"
 
     def build(self):
         """The graphs, one per seed (or the single fixed graph): list of Graph."""
