@@ -9,6 +9,8 @@ import numpy as np
 
 from mpnode.base.errors import InputError
 
+from .swing import disturbed
+
 
 def uniform(rng, system, n_nodes):
     """The spec's default: every coordinate uniform in (system.low, system.high) per dimension; a
@@ -33,7 +35,16 @@ def hotspots(rng, system, n_nodes):
     return grid.reshape(n_nodes, 1)
 
 
-SAMPLERS = {"uniform": uniform, "hotspots": hotspots}
+SAMPLERS = {"uniform": uniform, "hotspots": hotspots, "disturbed": disturbed}
+
+
+def draw_initial(sampler, rng, system, graph, node_attrs, params):
+    """x0 (N, dx) of one trajectory on ``graph``; a sampler that starts from the network's own state
+    (``needs_network``: swing's operating point) also gets the graph, the trajectory's node
+    attributes (N, dp) and the scalar parameters."""
+    if getattr(sampler, "needs_network", False):
+        return sampler(rng, system, graph.n_nodes, graph=graph, node_attrs=node_attrs, params=params)
+    return sampler(rng, system, graph.n_nodes)
 
 
 def get_sampler(name, system, n_nodes, source, field):
@@ -66,7 +77,9 @@ def initial_states(scene):
     made = scene_graphs(scene)
     graphs, gi = made.graphs, made.graph_index
     sampler = get_sampler(scene.initial, system, scene.graph.n_nodes, scene.name, "initial")
-    x0 = np.stack([sampler(trajectory_rng(scene.seed, b), system, graphs[gi[b]].n_nodes)
+    params = {**system.defaults, **scene.params}
+    attrs = made.node_attrs if made.node_attrs is not None else [None] * scene.trajectories
+    x0 = np.stack([draw_initial(sampler, trajectory_rng(scene.seed, b), system, graphs[gi[b]], attrs[b], params)
                    for b in range(scene.trajectories)])
     return x0, graphs, gi
 

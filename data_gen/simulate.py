@@ -36,7 +36,7 @@ from mpnode.base.errors import NumericalError
 from mpnode.data import Trajectories
 from mpnode.runs.executors import chunk_ranges, map_chunks, open_executor
 
-from .initial import get_sampler
+from .initial import draw_initial, get_sampler
 from .invariants import invariant_name
 from .per_trajectory import scene_graphs
 from .scenes import check_scene
@@ -245,9 +245,10 @@ def _run(j, chunk):
     for b in chunk:
         rng = np.random.default_rng(np.random.SeedSequence(j["seed"], spawn_key=(b,)))
         g = int(j["graph_index"][b])
-        n_nodes, rhs = j["graphs"][g].n_nodes, _rhs_of(j, b, g)
+        graph, rhs = j["graphs"][g], _rhs_of(j, b, g)
+        attrs = None if j["node_attrs"] is None else j["node_attrs"][b]
         for tries in range(j["max_tries"]):
-            x0 = j["sampler"](rng, j["sys"], n_nodes)
+            x0 = draw_initial(j["sampler"], rng, j["sys"], graph, attrs, j["params"])
             try:
                 x, used = integrate_switching(rhs, x0, j["n_steps"], j["dt"], j["method"], j["rtol"], j["atol"],
                                               j["sys"].guard, fallback=j["fallback"])

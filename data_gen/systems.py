@@ -18,7 +18,7 @@ import scipy.sparse
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph
 
-from . import forced_pendulum, quadrotor
+from . import forced_pendulum, quadrotor, swing
 from .graphs import symmetric_weights
 
 #: the pendulum is refused where |cos(theta)| falls below this (the RHS divides by it)
@@ -320,6 +320,12 @@ def _kuramoto_het(p, graph, attrs):
                    inv_degree=np.divide(1.0, degree, out=np.zeros_like(degree), where=degree > 0))
 
 
+def _swing(p, graph, attrs):
+    attrs = np.asarray(attrs, dtype=np.float64)
+    return partial(swing.swing_rhs, M=attrs[:, 0].copy(), D=attrs[:, 1].copy(), P=attrs[:, 2].copy(),
+                   W=weighted_adjacency(graph))
+
+
 def _pendulum_period(length):
     """The small-oscillation period of a pendulum of ``length`` (the pendulums' time scale)."""
     return lambda p: 2 * np.pi * np.sqrt(abs(p[length] / p["g"])) if p["g"] else np.inf
@@ -377,6 +383,10 @@ SYSTEMS = {
                state_names=("cos phase", "sin phase"), time_scale=_kuramoto_het_time,
                attr_names=("natural frequency (rad/s)",), draw_trajectory=draw_kuramoto_het,
                ranges=(("omega_min", "omega_max", None), ("w_min", "w_max", 0.0))),
+        System("swing", 3, dict(swing.DEFAULTS), low=(), high=(), draw=_nothing_drawn, rhs=_swing,
+               samplers=("disturbed",), state_names=swing.STATE_NAMES, time_scale=swing.time_scale,
+               attr_names=swing.ATTR_NAMES, draw_trajectory=swing.draw_grid,
+               ranges=(("b_min", "b_max", 0.0), ("gen_min", "gen_max", 0.0), ("angle_min", "angle_max", 0.0))),
         # rhs: f(t, y, F) on the state INCLUDING the load, thrusts F held (see quadrotor.py)
         System(quadrotor.SYSTEM, quadrotor.STATE_DIM, dict(quadrotor.PARAMS), low=(), high=(),
                draw=quadrotor.draw_params, rhs=quadrotor.make_rhs, complete=True,
