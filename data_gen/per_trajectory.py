@@ -45,15 +45,21 @@ def parameter_rng(seed, b):
 
 def scene_graphs(scene):
     """The SceneGraphs of ``scene``: its built graphs, trajectory b on graph b mod G, when nothing is
-    drawn per trajectory; else one graph per trajectory, drawn as the module docstring says."""
+    drawn per trajectory; else one graph per trajectory, drawn as the module docstring says; a
+    scene on a whole network (data_gen.grids.GridCase) runs every trajectory on its one graph and
+    attributes."""
     system = get_system(scene.system)
     B = scene.trajectories
+    scalars = {**system.defaults, **scene.params}
+    if hasattr(scene.graph, "network"):  # a whole network given (a real grid): every trajectory runs on it
+        graph, attrs, record = scene.graph.network(scalars, scene.name)
+        return SceneGraphs([graph], np.zeros(B, dtype=np.int64), {**scene.graph.describe(), **record},
+                           node_attrs=np.repeat(attrs[None], B, axis=0), attr_names=system.attr_names)
     drawn = isinstance(scene.graph, GraphDraws)
     if not drawn and system.draw_trajectory is None:
         graphs = scene.graph.build()
         return SceneGraphs(graphs, np.arange(B) % len(graphs), scene.graph.describe())
     fixed = None if drawn else scene.graph.build()
-    scalars = {**system.defaults, **scene.params}
     graphs, picks, attrs = zip(*(_trajectory(scene, system, scalars, fixed, b) for b in range(B)))
     out = SceneGraphs(list(graphs), np.arange(B), scene.graph.describe())
     if drawn:
