@@ -8,7 +8,8 @@ Anything else is a TOML file with this schema (example: scenes/example_gene_ring
 
     description  = "one line"   # optional
     system       = "gene"       # required: coupled_pendulum | coupled_pendulum_force | spring_pendulums |
-                                #   spring_pendulums_het | lorenz | gene | kuramoto | kuramoto_het | quadrotor_load
+                                #   spring_pendulums_het | lorenz | gene | kuramoto | kuramoto_het | swing |
+                                #   quadrotor_load
     trajectories = 1000         # optional, B >= 1
     horizon      = 50           # optional, T >= 1 steps
     dt           = 0.05         # optional, > 0
@@ -17,6 +18,7 @@ Anything else is a TOML file with this schema (example: scenes/example_gene_ring
     system_seed  = 0            # optional, drawn parameters shared by all (lorenz H, kuramoto omega)
     initial      = "uniform"    # optional: uniform (the spec's ranges) | hotspots (gene, square N)
                                 # | equilibrium (quadrotor_load, which must say so)
+                                # | disturbed (swing, which must say so: its operating point, disturbed)
     integrator   = "DOP853"     # optional: a scipy solve_ivp method
     rtol         = 1e-9         # optional
     atol         = 1e-9         # optional
@@ -26,7 +28,7 @@ Anything else is a TOML file with this schema (example: scenes/example_gene_ring
     [params]                    # optional: the system's scalar parameters, spec names (e.g. b, f, h; the
                                 # ranges a trajectory draws from, e.g. l_min, l_max)
     [graph]                     # required
-    builder  = "edges"          # complete | edges | gnp | gnm | barabasi_albert | watts_strogatz
+    builder  = "edges"          # complete | edges | gnp | gnm | barabasi_albert | watts_strogatz | power_grid
     nodes    = 8                # N
     edges    = [[0, 1], [1, 2]] # edges only: [sender, receiver] pairs
     directed = false            # edges only, optional: false adds both directions
@@ -53,6 +55,7 @@ from .graphs import (
     gene_graph,
     kuramoto_graph,
 )
+from .grids import CASES, GridCase
 from .initial import get_sampler
 from .systems import get_system
 
@@ -121,6 +124,18 @@ def _spring_pendulums_het(n):
                  "springs of their own stiffness, all drawn per trajectory", "spring_pendulums_het", chain)
 
 
+def _grid(n):
+    return Scene(f"grid{n}", f"a random connected power grid of {n} buses (swing equation), its lines, powers and "
+                 "machines drawn per trajectory, disturbed from its operating point", "swing",
+                 GraphDraws((GraphSpec("power_grid", n),)), initial="disturbed", horizon=100)
+
+
+def _ieee(number):
+    return Scene(f"ieee{number}", f"the IEEE {number}-bus case (swing equation; PYPOWER, the extra grids), disturbed "
+                 "from its operating point", "swing", GridCase(number, CASES[number]), initial="disturbed",
+                 horizon=100)
+
+
 def _quad(n):
     return Scene(f"quad{n}", f"{n} quadrotors carry a cable-suspended load towards a doorway (closed loop, "
                  "5 s of the 10 s transport)", "quadrotor_load", GraphSpec("complete", n), initial="equilibrium",
@@ -145,6 +160,7 @@ BUILTIN = {
                       "Erdos-Renyi or Watts-Strogatz"),
         _kuramoto_het(50, (GraphSpec("barabasi_albert", 50, {"m": 2}),), "Barabasi-Albert", "_ba"),
         _spring_pendulums_het(4), _spring_pendulums_het(10),
+        *(_grid(n) for n in (10, 20, 30, 40)), *(_ieee(number) for number in CASES),
         *(_quad(n) for n in (3, 4, 5, 6, 8, 12)),
     ]
 }
@@ -188,6 +204,8 @@ SETS = {
     for s in [
         SceneSet("quad3-5", "one module for any swarm size, trained on 3, 4 and 5 carriers",
                  (("quad3", 500), ("quad4", 300), ("quad5", 300)), test="quad6"),
+        SceneSet("grids10-30", "one bus module for any power grid, trained on random grids of 10, 20 and 30 buses",
+                 (("grid10", 400), ("grid20", 300), ("grid30", 300)), test="grid40"),
     ]
 }
 
@@ -257,7 +275,10 @@ def _check_excitation(value, system, source):
 
 
 def _graph_families(graph):
-    """The GraphSpecs of a scene's graph: each family a GraphDraws picks from, or the one spec."""
+    """The GraphSpecs of a scene's graph: each family a GraphDraws picks from, or the one spec (none for a
+    real grid, which is checked when it is read)."""
+    if isinstance(graph, GridCase):
+        return ()
     return graph.families if isinstance(graph, GraphDraws) else (graph,)
 
 

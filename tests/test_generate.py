@@ -190,4 +190,5 @@ def test_cli_scenes_lists_every_builtin():
     lines = r.stdout.splitlines()
     assert [line.split()[0] for line in lines] == list(BUILTIN) + list(SETS)
     assert all("B=" in line and "dt=" in line for line in lines[:len(BUILTIN)])
-    assert all("scene set: quad3 x 500" in line for line in lines[len(BUILTIN):])
+    assert all(line.split()[1:3] == ["scene", "set:"] for line in lines[len(BUILTIN):])
+    assert any("scene set: quad3 x 500" in line for line in lines[len(BUILTIN):])

@@ -15,7 +15,8 @@ EXPECTED = ["coupled_pendulum", "pendulum_force", "lorenz3", "lorenz7", "lorenz1
             "gene16_er", "gene16_ba", "gene16_ws", "gene64_er", "gene64_ba", "gene64_ws", "gene16_ba_multi",
             "gene16_er_hot", "gene16_ba_hot", "gene16_ws_hot", "gene64_er_hot", "gene64_ba_hot", "gene64_ws_hot",
             "gene16_ba_multi_hot", "kuramoto10_er", "kuramoto10_ba", "kuramoto10_ws", "kuramoto_het10",
-            "kuramoto_het50_ba", "spring_pendulums_het4", "spring_pendulums_het10", "quad3", "quad4",
+            "kuramoto_het50_ba", "spring_pendulums_het4", "spring_pendulums_het10", "grid10", "grid20", "grid30",
+            "grid40", "ieee14", "ieee30", "ieee39", "ieee57", "ieee118", "ieee300", "quad3", "quad4",
             "quad5", "quad6", "quad8", "quad12"]
 
 
@@ -26,6 +27,7 @@ def test_builtin_scenes():
         assert s.name == name and s.description and "\n" not in s.description
         dt = 0.1 if s.system == "quadrotor_load" else 0.05  # quadrotor.md: dt = 0.1, T = 50
         horizon = 200 if name == "lorenz10_10s" else 50  # the paper's Fig. 5e: 10 s at dt = 0.05
+        horizon = 100 if s.system == "swing" else horizon  # 5 s: the power grids' swings and their decay
         assert (s.dt, s.horizon, s.trajectories) == (dt, horizon, 1000)
     assert [BUILTIN[n].params["coupling"] for n in ("lorenz10", "lorenz10_medium", "lorenz10_high", "lorenz10_10s")] \
         == [0.01, 1.0, 5.0, 0.01]
