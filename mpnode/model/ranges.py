@@ -3,14 +3,18 @@
 A model answers anywhere, also where it has never been: a denser graph, more nodes, states
 or neighbour aggregates larger than any in its training data.  Training records the range
 of every input its networks received on the training split (`record`: the states per
-dimension, the in-degree, each aggregate input per channel, the number of nodes), and
+dimension, the in-degree, each aggregate input per channel, the number of nodes and, for a
+model that has them, each node attribute and the edge weights), and
 `scan` + `off_range` tell, for new data, which of them left that range, by how much and
 where, so that a user can see when not to trust a prediction.
 
 The aggregates are those of the model's own rollout from each trajectory's first state, at
 the output steps (not at every RK4 stage): the same pass on the training split and on new
-data, so the two compare like with like.  The ranges live in ``Model.attrs[KEY]`` as plain
-lists, and in the model file as the optional group ``seen/`` (docs/model-format.md).
+data, so the two compare like with like.  The node attributes reach the networks as their last
+control columns (mpnode.model.inputs) but are named by their own names here, as the states are:
+a user knows a pendulum's length, not the model's fourth control.  The ranges live in
+``Model.attrs[KEY]`` as plain lists, and in the model file as the optional group ``seen/``
+(docs/model-format.md).
 """
 import warnings
 
@@ -27,6 +31,14 @@ from .model import batch_graph, node_intervals
 MARGIN = 0.25
 #: quantities with one value per node, and quantities of a whole graph
 _SCALARS = ("in_degree", "nodes")
+#: quantities whose channels have names (the state's dimensions, the node attributes), not numbers
+_NAMED = ("state", "attribute")
+#: quantities that stay as they are along a rollout: reported without a step
+_STATIC = _SCALARS + ("edge_weight", "attribute")
+#: where each quantity's value was (the default: along a rollout)
+_WHERE = {"nodes": "", "in_degree": " at node {node}", "attribute": " at node {node} (trajectory {trajectory})",
+          "edge_weight": " on an edge into node {node} (trajectory {trajectory})"}
+_ROLLOUT_WHERE = " at node {node} (trajectory {trajectory}, step {step})"
 
 
 class OffRangeWarning(UserWarning):
@@ -35,10 +47,11 @@ class OffRangeWarning(UserWarning):
 
 class Tally:
     """The smallest and largest value of every quantity seen so far, each with where it was:
-    (trajectory, step, node) per channel."""
+    (trajectory, step, node) per channel; ``names``: the channels' names of a quantity that has
+    them beside the state (the node attributes')."""
 
     def __init__(self):
-        self.lo, self.hi, self.lo_at, self.hi_at = {}, {}, {}, {}
+        self.lo, self.hi, self.lo_at, self.hi_at, self.names = {}, {}, {}, {}, {}
 
     def add(self, name, values, step, first_trajectory=0):
         """values (B, N, c) at output ``step`` of trajectories first_trajectory.. (NaN ignored, and so
@@ -128,16 +141,41 @@ def scan(model, x0, graphs, graph_index, u=None, steps=0, times=None, max_nodes=
                 tally.add("state", x, t, i)
                 for name, a in heard.items():
                     tally.add(name, a, t, i)
+            if u is not None and np.shape(u)[1]:  # held over every step: the first one's are all of them
+                add_attributes(tally, model, np.asarray(u)[i:j, 0], i)
     add_graphs(tally, graphs, gi, n)
     return tally
 
 
+def add_attributes(tally, model, u, first_trajectory=0):
+    """The node attributes among the controls u (B, N, du) in the data's units (their last
+    ``attr_dim`` columns), under the model's names for them; nothing for a model without."""
+    dp = model.spec.attr_dim
+    if dp and u is not None:
+        tally.add("attribute", u[..., -dp:], 0, first_trajectory)
+        tally.names["attribute"] = model.attr_names
+
+
 def add_graphs(tally, graphs, graph_index, n_nodes):
-    """The in-degree of every node of the graphs used, and their number of nodes."""
+    """The in-degree of every node of the graphs used, their edge weights when they have them,
+    and their number of nodes."""
     for k in np.unique(graph_index):
         first = int(np.argmax(graph_index == k))
         tally.add("in_degree", graphs[int(k)].degrees().reshape(1, -1, 1), 0, first)
+        add_edge_weights(tally, graphs[int(k)], first)
     tally.add("nodes", np.array([[[n_nodes]]]), 0, 0)
+
+
+def add_edge_weights(tally, graph, first_trajectory=0):
+    """The weights of a weighted graph's edges, each node's smallest and largest incoming one (so
+    that a report names the node whose edge it is); nothing for an unweighted graph."""
+    if not graph.weighted or not graph.n_edges:
+        return
+    rows = np.repeat(np.arange(graph.n_nodes), graph.degrees())
+    for pick, start in ((np.minimum, np.inf), (np.maximum, -np.inf)):
+        per_node = np.full(graph.n_nodes, start)  # a node that hears nobody stays infinite: not tallied
+        pick.at(per_node, rows, graph.weights)
+        tally.add("edge_weight", per_node.reshape(1, -1, 1), 0, first_trajectory)
 
 
 def record(tally):
@@ -164,7 +202,7 @@ def off_range(seen, tally, state_names=None, margin=MARGIN):
     """One entry (dict, with a plain ``message``) per quantity of ``tally`` that left ``seen``
     (a recorded range) by more than ``margin`` of the seen width, worst channel first; []
     when none did."""
-    out = []
+    out, names = [], {"state": state_names, **tally.names}
     for name, (lo, hi) in tally.ranges().items():
         if f"{name}_min" not in seen:
             continue
@@ -175,10 +213,10 @@ def off_range(seen, tally, state_names=None, margin=MARGIN):
         below, above = (s_lo - margin * width) - lo, hi - (s_hi + margin * width)
         for channel in range(len(lo)):
             entries = [_entry(name, channel, "below", lo[channel], s_lo[channel], s_hi[channel],
-                              tally.lo_at[name][channel], state_names)] if below[channel] > 0 else []
+                              tally.lo_at[name][channel], names.get(name))] if below[channel] > 0 else []
             if above[channel] > 0:
                 entries.append(_entry(name, channel, "above", hi[channel], s_lo[channel], s_hi[channel],
-                                      tally.hi_at[name][channel], state_names))
+                                      tally.hi_at[name][channel], names.get(name)))
             out += entries
     return _worst_per_quantity(out)
 
@@ -195,31 +233,33 @@ def _worst_per_quantity(entries):
     return sorted(best.values(), key=lambda e: -size(e))
 
 
-def _entry(name, channel, side, value, s_lo, s_hi, at, state_names):
+def _entry(name, channel, side, value, s_lo, s_hi, at, names):
+    """One quantity's departure; ``names``: its channels' names, if it has any."""
     bound = s_lo if side == "below" else s_hi
     width = s_hi - s_lo
     beyond = abs(value - bound)
-    quantity = _quantity(name, channel, state_names)
+    quantity = _quantity(name, channel, names)
     trajectory, step, node = (int(v) for v in at)
-    where = {"nodes": "", "in_degree": f" at node {node}"}.get(name, f" at node {node} (trajectory {trajectory}, step {step})")
+    where = _WHERE.get(name, _ROLLOUT_WHERE).format(node=node, trajectory=trajectory, step=step)
     limit = "smallest" if side == "below" else "largest"
     share = f", {beyond / width:.3g}x the range seen" if width > 0 else ""
-    channel_part = f" channel {channel}" if name not in _SCALARS and name != "state" else ""
-    text = (f"{quantity}{channel_part} {_num(value)}{where} is {side} the {limit} seen in training "
-            f"({_num(bound)}) by {_num(beyond)}{share}")
-    return {"quantity": quantity, "channel": None if name in _SCALARS or name == "state" else channel,
+    numbered = name not in _STATIC and name not in _NAMED  # the aggregates: a channel of a vector
+    text = (f"{quantity}{f' channel {channel}' if numbered else ''} {_num(value)}{where} is {side} the {limit} "
+            f"seen in training ({_num(bound)}) by {_num(beyond)}{share}")
+    return {"quantity": quantity, "channel": channel if numbered else None,
             "value": float(value), "seen_min": float(s_lo), "seen_max": float(s_hi), "side": side,
             "beyond": float(beyond), "beyond_width": float(beyond / width) if width > 0 else None,
-            "trajectory": None if name == "nodes" else trajectory, "step": None if name in _SCALARS else step,
+            "trajectory": None if name == "nodes" else trajectory, "step": None if name in _STATIC else step,
             "node": None if name == "nodes" else node, "message": text}
 
 
-def _quantity(name, channel, state_names):
-    if name == "state":
-        names = state_names if state_names is not None and len(state_names) > channel else None
-        return f"state {names[channel]}" if names is not None else f"state x[{channel}]"
+def _quantity(name, channel, names):
+    if name in _NAMED:
+        symbol = {"state": "x", "attribute": "p"}[name]
+        named = names is not None and len(names) > channel
+        return f"{name} {names[channel] if named else f'{symbol}[{channel}]'}"
     return {"in_degree": "in-degree", "nodes": "number of nodes", "aggregate": "aggregate input",
-            "linear_aggregate": "linear-path aggregate input"}[name]
+            "linear_aggregate": "linear-path aggregate input", "edge_weight": "edge weight"}[name]
 
 
 def _num(v):
@@ -227,10 +267,11 @@ def _num(v):
 
 
 def training_ranges(model, datasets, split):
-    """The ranges to record for ``model`` trained on ``datasets`` (Trajectories, with the
-    model's latent dimensions) whose training trajectories are ``split[i][0]``: the data's
-    states joined with those of one rollout of the model from each training trajectory's start,
-    whose aggregates, in-degrees and number of nodes come with them."""
+    """The ranges to record for ``model`` trained on ``datasets`` (Trajectories as training heard
+    them: the model's latent dimensions, node attributes as the last controls) whose training
+    trajectories are ``split[i][0]``: the data's states joined with those of one rollout of the
+    model from each training trajectory's start, whose aggregates, in-degrees, number of nodes,
+    node attributes and edge weights come with them."""
     seen = {}
     for traj, (train, _) in zip(datasets, split):
         train, traj = np.asarray(train), model.fitted(traj)
@@ -264,7 +305,8 @@ class Watch:
             self.warn(tally)
 
     def __call__(self, z, u, step):
-        """Check the full state z (B*N, dx+dm) in the model's units, and u, at output ``step``."""
+        """Check the full state z (B*N, dx+dm) and the controls u (B*N, du) in the model's units (its
+        node attributes their last columns), at output ``step``."""
         if not self.seen:
             return
         tally = Tally()
@@ -272,6 +314,9 @@ class Watch:
         tally.add("state", self.model.denormalize_x(np.asarray(z[:, :dx], dtype=np.float64)).reshape(self.shape), step)
         for name, a in self.heard(z, u).items():
             tally.add(name, a.reshape(self.shape[:2] + (-1,)), step)
+        if u is not None:
+            units = np.asarray(u, dtype=np.float64) * self.model.u_std + self.model.u_mean
+            add_attributes(tally, self.model, units.reshape(self.shape[:2] + (-1,)))
         self.warn(tally)
 
     def warn(self, tally):
