@@ -11,7 +11,7 @@ from .main import claim_outputs, main
 @click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
               help="OUT.onnx (an ONNX graph) or OUT.py (a NumPy module); written atomically.")
 @click.option("--graph", "graph_file", metavar="DATA", type=click.Path(exists=True, dir_okay=False),
-              help="A trajectory file: the export is for its first graph.")
+              help="A trajectory file: the export is for its first graph (its edge weights the default ones).")
 @click.option("--nodes", type=click.IntRange(min=1), help="Or: the complete graph on N nodes.")
 @click.option("--steps", "-T", type=click.IntRange(min=1),
               help="ONNX only: the rollout's number of steps T (default 1: one step).")
@@ -25,6 +25,14 @@ def export_cmd(model_file, output, graph_file, nodes, steps):
               Needs the onnx extra: pip install 'mpnode[onnx]'.
     OUT.py    a Python module needing numpy alone, weights inside:
               rollout(x0, steps, u=None) returns what Model.rollout returns.
+
+    A model trained with node attributes or on weighted graphs takes them as
+    inputs too, each with a default: node_attrs (1 or B, N, dp), default every
+    node at the training mean of each attribute; edge_weights (E,) in the
+    graph's CSR order, default the graph's own (1 on every edge of --nodes).
+    OUT.py: rollout(..., node_attrs=None, edge_weights=None); ONNX: inputs
+    whose initializers hold the defaults (feed them by name to override;
+    onnxruntime lists them in get_overridable_initializers()).
 
     What is exported: the model's rollout on that graph, every dt, from a given full state
     x0 (its normalisation, RK4 substeps, messages starting at 0), N and, for ONNX, T fixed.

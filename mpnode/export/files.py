@@ -12,9 +12,10 @@ FORMATS = {".onnx": "ONNX graph", ".py": "NumPy module"}
 def export_file(model_path, output, graph_path=None, nodes=None, steps=None, claim=None):
     """Write ``model_path``'s model on a graph to ``output`` (.onnx or .py); returns a one-line summary.
 
-    graph_path : a trajectory file whose first graph the export is for; or ``nodes``: the
-    complete graph on that many nodes.  steps : the ONNX rollout's T (default 1; the NumPy
-    module takes it at run time).  Raises InputError (flag or file, field, fix) before
+    graph_path : a trajectory file whose first graph the export is for (its edge weights the
+    default ones of a model of weighted graphs; left out for a model trained without); or
+    ``nodes``: the complete graph on that many nodes (every edge weight 1).  steps : the ONNX
+    rollout's T (default 1; the NumPy module takes it at run time).  Raises InputError (flag or file, field, fix) before
     writing anything; then calls ``claim()`` if given (the command's lock on ``output``).
     """
     from mpnode.model import Model
@@ -41,28 +42,49 @@ def export_file(model_path, output, graph_path=None, nodes=None, steps=None, cla
     if isinstance(model, Ensemble):
         raise InputError(model_path, "ensemble_size", f"is an ensemble of {model.size} models",
                          "one model's file (an exported module computes one rollout, not a mean and a spread)")
-    graph = _graph(graph_path, nodes)
+    graph = _graph(graph_path, nodes, model)
     model.check_nodes(graph.n_nodes, graph_path or "--nodes", "nodes")
     if ext == ".py":
         from .numpy_module import write_numpy_module
 
         write_numpy_module(model, graph, output)
-        return (f"wrote {output}: NumPy module, rollout(x0, steps, u=None) of the {model.kind} model on "
-                f"{graph.n_nodes} nodes")
+        extra = "".join(f", {name}=None" for name, _ in _network_inputs(model, graph))
+        return (f"wrote {output}: NumPy module, rollout(x0, steps, u=None{extra}) of the {model.kind} model on "
+                f"{graph.n_nodes} nodes{_defaults(model, graph)}")
     from .onnx_model import write_onnx
 
     steps = 1 if steps is None else steps
     write_onnx(model, graph, output, steps)
-    s = model.spec
-    u = f", u (B, {steps}, {graph.n_nodes}, {s.control_dim})" if s.control_dim else ""
-    return (f"wrote {output}: ONNX rollout of {steps} step(s) of the {model.kind} model on {graph.n_nodes} nodes, "
-            f"{model.dtype}: inputs x0 (B, {graph.n_nodes}, {s.state_dim}){u}; output x (B, {steps + 1}, "
-            f"{graph.n_nodes}, {s.state_dim})")
+    s, n = model.spec, graph.n_nodes
+    du = s.control_dim - s.attr_dim
+    u = f", u (B, {steps}, {n}, {du})" if du else ""
+    more = "".join(f", {name} {shape}" for name, shape in _network_inputs(model, graph))
+    return (f"wrote {output}: ONNX rollout of {steps} step(s) of the {model.kind} model on {n} nodes, "
+            f"{model.dtype}: inputs x0 (B, {n}, {s.state_dim}){u}{more}; output x (B, {steps + 1}, "
+            f"{n}, {s.state_dim}){_defaults(model, graph)}")
 
 
-def _graph(graph_path, nodes):
+def _network_inputs(model, graph):
+    """(name, shape) of the inputs a model of node attributes or weighted graphs adds."""
+    out = [("node_attrs", f"(1 or B, {graph.n_nodes}, {model.spec.attr_dim})")] if model.spec.attr_dim else []
+    if model.spec.aggregation.weight_scale is not None and model.kind != "node":
+        out.append(("edge_weights", f"({graph.n_edges},)"))
+    return out
+
+
+def _defaults(model, graph):
+    """What those inputs default to, as a sentence's end ("" without them)."""
+    said = {"node_attrs": f"node_attrs the training mean of {', '.join(model.attr_names)}",
+            "edge_weights": "edge_weights the graph's" + ("" if graph.weighted else " (1 on every edge)")}
+    parts = [said[name] for name, _ in _network_inputs(model, graph)]
+    return f"; defaults: {', '.join(parts)}" if parts else ""
+
+
+def _graph(graph_path, nodes, model):
+    """The graph to export for; its weights left out for a model trained on unweighted graphs."""
     if nodes is not None:
         return Graph.complete(nodes)
     from mpnode.data import read_trajectories
 
-    return read_trajectories(graph_path).graphs[0]
+    graph = read_trajectories(graph_path).graphs[0]
+    return graph if model.spec.aggregation.weight_scale is not None else graph.reweighted(None)

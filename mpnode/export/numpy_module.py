@@ -2,8 +2,9 @@
 
 The file is `standalone`'s docstring, the source of the NumPy path's model
 (`mpnode.engine.numpy_path.NUMPY_ONLY`: the field and RK4 the library itself runs without
-numba) and of `standalone`'s ``decode`` and ``run``, then the model on its graph
-(`arrays.model_arrays`, arrays as base64 bytes: exact, any dtype) and ``rollout``.
+numba) and of `standalone`'s functions, then the model on its graph (`arrays.model_arrays`,
+arrays as base64 bytes: exact, any dtype; the default node attributes and edge weights among
+them) and ``rollout``.
 """
 import base64
 import inspect
@@ -21,15 +22,16 @@ from .arrays import model_arrays
 _HEADER = '"""{doc}"""\nimport base64\n\nimport numpy as np\n'
 
 #: the functions the exported file holds, by their source
-FUNCTIONS = NUMPY_ONLY + (standalone.decode, standalone.run)
+FUNCTIONS = NUMPY_ONLY + (standalone.decode, standalone.controls, standalone.weighted, standalone.run)
 
 _ROLLOUT = '''MODEL = decode({model})
 
 
-def rollout(x0, steps=None, u=None):
+def rollout(x0, steps=None, u=None, node_attrs=None, edge_weights=None):
     """x (B, T+1, N, dx) from x0 (B, N, dx) under controls u (B, T, N, du) (None without
-    controls; steps defaults to u's length): see the module docstring."""
-    return run(MODEL, x0, steps, u)
+    controls; steps defaults to u's length), a model's node attributes node_attrs (N, dp) or
+    (B, N, dp) and edge weights edge_weights (E,) (None: MODEL's): see the module docstring."""
+    return run(MODEL, x0, steps, u, node_attrs, edge_weights)
 '''
 
 

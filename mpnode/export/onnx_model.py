@@ -1,13 +1,20 @@
 """`mpnode export MODEL -o OUT.onnx`: a rollout of T steps on one graph as an ONNX graph.
 
-Inputs, in order: ``x0`` (B, N, dx) and, for a model with controls, ``u`` (B, T, N, du), in
-the data's units; output ``x`` (B, T+1, N, dx), as ``Model.rollout``; B is free, N and T are
-fixed at export.  Computed in the model's dtype (a float64 model exports float64; every
-operator used runs in double on onnxruntime's CPU provider).  The time loop is one ONNX
-``Loop`` over T whose body is one dt (its RK4 substeps unrolled), so the file's size does
-not grow with T.  The neighbour aggregation is a dense MatMul with the graph's (N, N)
-weights: one GEMM per stage, fast for the graphs of a few hundred nodes a controller
-runs on; its N^2 weights make it the wrong form beyond a few thousand nodes.
+Inputs, in order: ``x0`` (B, N, dx); for a model with controls, ``u`` (B, T, N, du); for a
+model with node attributes, ``node_attrs`` (1, N, dp) or (B, N, dp), held over every step; for
+a model of weighted graphs, ``edge_weights`` (E,), in the graph's CSR order; all in the data's
+units; output ``x`` (B, T+1, N, dx), as ``Model.rollout``; B is free, N and T are fixed at
+export.  ``node_attrs`` and ``edge_weights`` have defaults, initializers of the same name that
+a run may override (onnxruntime: feed them by name; ``get_overridable_initializers()`` lists
+them, and loading the file logs a warning that they are graph inputs, which is what lets a run
+override them): every node at the training mean of each attribute, the exported graph's
+weights (`arrays.network_defaults`).  Computed in the model's
+dtype (a float64 model exports float64; every operator used runs in double on onnxruntime's
+CPU provider).  The time loop is one ONNX ``Loop`` over T whose body is one dt (its RK4
+substeps unrolled), so the file's size does not grow with T.  The neighbour aggregation is a
+dense MatMul with the graph's (N, N) weights (built once per run from ``edge_weights`` for a
+model of weighted graphs): one GEMM per stage, fast for the graphs of a few hundred nodes a
+controller runs on; its N^2 weights make it the wrong form beyond a few thousand nodes.
 
 Needs the ``onnx`` extra (pip install 'mpnode[onnx]'): onnx writes and checks the graph,
 onnxruntime runs it.  The graph is built op by op, so it is a second implementation of the
@@ -104,23 +111,51 @@ def _network_field(g, p, z, u):
         h0 = g.op("Tanh", g.linear(g.op("Concat", *xu, axis=2), p["W_lift"], p["b_lift"]))
         s = g.op("Tanh", g.linear(h0, p["W_msg"], p["b_msg"]))
         empty = p["empty_rows"][:, None] * p["psi"][None, :]  # psi on the rows that hear nobody
-        a = g.op("Add", g.op("MatMul", g.const(dense_aggregation(p, p["weight"])), s), g.const(empty))
+        a = g.op("Add", g.op("MatMul", _aggregation(g, p, "weight"), s), g.const(empty))
         t = g.op("Tanh", g.linear(a, p["W_upd"], p["b_upd"]))
         return g.linear(g.op("Add", g.op("Add", h0, h0), t), p["W_out"], p["b_out"])
     m = g.columns(z, dx, dx + p["message_dim"])
-    heard = g.op("MatMul", g.const(dense_aggregation(p, p["weight"])), m)
+    heard = g.op("MatMul", _aggregation(g, p, "weight"), m)
     if p["zero_messages"]:
         heard = g.op("Mul", heard, g.const(0.0))
     k = _mlp(g, p, g.op("Concat", *xu, heard, axis=2))
     if "W_agg" in p:
         w = np.zeros((p["message_dim"], dx + p["message_dim"]))
         w[:, :p["W_agg"].shape[1]] = p["W_agg"]
-        linear = heard if "linear_weight" not in p else g.op(
-            "MatMul", g.const(dense_aggregation(p, p["linear_weight"])), m)
+        linear = heard if "linear_weight" not in p else g.op("MatMul", _aggregation(g, p, "linear_weight"), m)
         k = g.op("Add", k, g.op("MatMul", linear, g.const(w)))
     if p["zero_messages"]:
         k = g.op("Mul", k, g.const(np.r_[np.ones(dx), np.zeros(p["message_dim"])]))
     return k
+
+
+def _aggregation(g, p, key):
+    """The (N, N) aggregation matrix of the rule whose node factors are ``p[key]``: for a model of
+    weighted graphs the outer graph's, built from the run's edge weights (`_weighted_aggregations`),
+    else a constant."""
+    return f"agg_{key}" if "weight_scale" in p else g.const(dense_aggregation(p, p[key]))
+
+
+def _weighted_aggregations(g, p):
+    """The aggregation matrices ``agg_weight`` (and ``agg_linear_weight``) of the input
+    ``edge_weights`` (E,), once per run: each edge's weight over weight_scale added at (receiver,
+    sender) (ScatterND: parallel edges add), 1 on the diagonal with self-messages, each row times
+    the rule's node factor."""
+    from onnx import helper, numpy_helper
+
+    n = p["n_nodes"]
+    zero = numpy_helper.from_array(np.zeros(1, dtype=g.dtype))
+    a = g.op("ConstantOfShape", g.const([n * n], np.int64), value=zero)
+    if len(p["indices"]):
+        rows = np.repeat(np.arange(n), np.diff(p["indptr"]))
+        w = g.op("Div", "edge_weights", g.const(p["weight_scale"]))
+        a = g.op("ScatterND", a, g.const((rows * n + p["indices"])[:, None], np.int64), w, reduction="add")
+    a = g.op("Reshape", a, g.const([n, n], np.int64))
+    if p["self_messages"]:
+        a = g.op("Add", a, g.const(np.eye(n)))
+    for key in ("weight", "linear_weight"):
+        if key in p:
+            g.nodes.append(helper.make_node("Mul", [a, g.const(p[key][:, None])], [f"agg_{key}"]))
 
 
 def _one_dt(g, p, z, u):
@@ -142,9 +177,12 @@ def _loop_body(p, tensor_type):
     from onnx import TensorProto, helper
 
     g = _Graph("body_", p["dtype"])
-    u = None
-    if p["control_dim"]:  # u_n[:, i]: this step's normalised controls, from the outer graph
-        u = g.op("Gather", "u_n", "i", axis=1)
+    heard = []  # what the field hears beside the states, normalised, from the outer graph
+    if p["control_dim"] - p.get("attr_dim", 0):  # u_n[:, i]: this step's controls
+        heard.append(g.op("Gather", "u_n", "i", axis=1))
+    if p.get("attr_dim"):  # the node attributes, held
+        heard.append("a_n")
+    u = None if not heard else heard[0] if len(heard) == 1 else g.op("Concat", *heard, axis=2)
     z = _one_dt(g, p, "z", u)
     g.nodes.append(helper.make_node("Identity", ["cond"], ["cond_out"]))
     g.nodes.append(helper.make_node("Identity", [z], ["z_out"]))
@@ -169,7 +207,7 @@ def onnx_rollout(model, graph, steps):
     from onnx import helper
 
     p = model_arrays(model, graph)
-    n, dx, du, dm = p["n_nodes"], p["state_dim"], p["control_dim"], p["message_dim"]
+    n, dx, dm = p["n_nodes"], p["state_dim"], p["message_dim"]
     tensor_type = helper.np_dtype_to_tensor_dtype(np.dtype(p["dtype"]))
     g = _Graph("c", p["dtype"])
     xn = g.op("Div", g.op("Sub", "x0", g.const(p["x_mean"])), g.const(p["x_std"]))
@@ -178,11 +216,7 @@ def onnx_rollout(model, graph, steps):
         z0 = g.op("Concat", xn, zeros, axis=2)
     else:
         z0 = xn
-    inputs = [helper.make_tensor_value_info("x0", tensor_type, ["B", n, dx])]
-    if du:
-        inputs.append(helper.make_tensor_value_info("u", tensor_type, ["B", steps, n, du]))
-        g.nodes.append(helper.make_node("Div", [g.op("Sub", "u", g.const(p["u_mean"])), g.const(p["u_std"])],
-                                        ["u_n"]))
+    inputs = [helper.make_tensor_value_info("x0", tensor_type, ["B", n, dx])] + _heard_inputs(g, p, steps, tensor_type)
     trips, cond = g.const(steps, np.int64), g.const(True, np.bool_)
     g.nodes.append(helper.make_node("Loop", [trips, cond, z0], ["z_end", "x_path"], body=_loop_body(p, tensor_type)))
     path = g.op("Transpose", "x_path", perm=[1, 0, 2, 3])  # (T, B, N, dx) -> (B, T, N, dx)
@@ -193,6 +227,32 @@ def onnx_rollout(model, graph, steps):
                               opset_imports=[helper.make_opsetid("", OPSET)], producer_name="mpnode")
     onnx.checker.check_model(proto, full_check=True)
     return proto
+
+
+def _heard_inputs(g, p, steps, tensor_type):
+    """The inputs beside x0, as the Loop's body reads them: the controls ``u`` (normalised: u_n),
+    the node attributes ``node_attrs`` (normalised and broadcast to (B, N, dp): a_n) and the
+    ``edge_weights`` (the aggregation matrices), the last two with their defaults."""
+    from onnx import helper, numpy_helper
+
+    n, dp = p["n_nodes"], p.get("attr_dim", 0)
+    du = p["control_dim"] - dp
+    inputs = []
+    if du:
+        inputs.append(helper.make_tensor_value_info("u", tensor_type, ["B", steps, n, du]))
+        g.nodes.append(helper.make_node("Div", [g.op("Sub", "u", g.const(p["u_mean"][:du])),
+                                                g.const(p["u_std"][:du])], ["u_n"]))
+    if dp:
+        inputs.append(helper.make_tensor_value_info("node_attrs", tensor_type, ["A", n, dp]))
+        g.constants.append(numpy_helper.from_array(p["node_attrs"][None].astype(g.dtype), "node_attrs"))
+        a = g.op("Div", g.op("Sub", "node_attrs", g.const(p["u_mean"][du:])), g.const(p["u_std"][du:]))
+        shape = g.op("Concat", g.op("Shape", "x0", start=0, end=1), g.const([n, dp], np.int64), axis=0)
+        g.nodes.append(helper.make_node("Expand", [a, shape], ["a_n"]))
+    if "weight_scale" in p:
+        inputs.append(helper.make_tensor_value_info("edge_weights", tensor_type, [len(p["indices"])]))
+        g.constants.append(numpy_helper.from_array(p["edge_weights"].astype(g.dtype), "edge_weights"))
+        _weighted_aggregations(g, p)
+    return inputs
 
 
 def write_onnx(model, graph, path, steps=1):
