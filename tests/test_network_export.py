@@ -169,3 +169,21 @@ def test_the_command_says_what_the_inputs_default_to(tmp_path, trained):
     complete = load_module(tmp_path / "c.py")
     want = model.rollout(x0, Graph.complete(4), steps=T, node_attrs=complete.MODEL["node_attrs"])
     np.testing.assert_allclose(complete.rollout(x0, T), want, rtol=1e-6, atol=1e-6 * np.abs(want).max())
+
+
+def test_a_model_of_unweighted_graphs_leaves_the_files_weights_out(tmp_path):
+    """It never heard weights: exported from a weighted file, it runs on the wiring alone, takes no
+    edge_weights, and says what a model without attributes says."""
+    model = Model.create(1, 0, dt=0.1, message_dim=2, hidden=8, seed=3)
+    model.save(tmp_path / "m.h5")
+    data = relaxing_nodes(B=2, T=1, seed=7)
+    write_trajectories(tmp_path / "d.h5", data)
+    r = CliRunner().invoke(main, ["export", str(tmp_path / "m.h5"), "-o", str(tmp_path / "m.py"), "--graph",
+                                  str(tmp_path / "d.h5")])
+    assert r.exit_code == 0 and "rollout(x0, steps, u=None) of" in r.output and "defaults" not in r.output, r.output
+    module = load_module(tmp_path / "m.py")
+    x0 = np.asarray(data.x[:, 0], dtype=np.float32)
+    want = model.rollout(x0, data.graphs[0].reweighted(None), steps=T)
+    np.testing.assert_allclose(module.rollout(x0, T), want, rtol=1e-6, atol=1e-6 * np.abs(want).max())
+    with pytest.raises(ValueError, match="trained on unweighted graphs"):
+        module.rollout(x0, T, edge_weights=data.graphs[0].weights)
