@@ -24,7 +24,12 @@ class Simulator:
 
     model : a Model or an Ensemble, or the path of a model file (any kind: mpnode, l2s, node;
         an ensemble steps every member: `state` is their mean, `spread` the calibrated spread)
-    graph : an mpnode Graph or a networkx graph (nodes 0..N-1), shared by the B copies
+    graph : an mpnode Graph or a networkx graph (nodes 0..N-1), shared by the B copies; weighted
+        (Graph.weights, a networkx edge attribute ``weight``) exactly when the model was trained
+        on weighted graphs
+    node_attrs : (N, dp) shared by the B copies or (B, N, dp) one set per copy, the nodes' static
+        attributes (`Model.attr_names`) for a model that has them, else None: the model hears
+        them after the controls on every step, as `Model.rollout(..., node_attrs=...)` does
     backend : "auto", "numba" or "numpy" (as Model.rollout)
 
     >>> sim = Simulator("model.h5", graph)
@@ -37,13 +42,15 @@ class Simulator:
     and listed in ``sim.off_range``.
     """
 
-    def __init__(self, model, graph, backend="auto"):
+    def __init__(self, model, graph, node_attrs=None, backend="auto"):
         if not isinstance(model, (Model, Ensemble)):
             model = Model.load(check_path(model, "Simulator", "model"))
         self.model = model
         self._models = models_of(model)
         self.graph = _as_graph(graph)
         self.model.check_nodes(self.graph.n_nodes)
+        check_weighting(model, self.graph, "Simulator")
+        self.node_attrs = held_attrs(model, node_attrs, None, self.graph.n_nodes, "Simulator")
         if backend not in engine.BACKENDS:
             raise InputError("Simulator", "backend", f"is {backend!r}", " or ".join(engine.BACKENDS))
         self.backend = engine.resolve_backend(backend)
@@ -67,6 +74,7 @@ class Simulator:
         if x0.dtype.kind not in "iuf" or not np.all(np.isfinite(x0)):
             raise InputError("Simulator.reset", "x0", "holds non-finite or non-numeric values", "finite numbers")
         self._shape = x0.shape
+        self._attrs = held_attrs(m, self.node_attrs, x0.shape[0], n, "Simulator")
         self._flat = batch_graph(self.graph, x0.shape[0])  # the batch graph rollout uses: same plan
         self._zs = [engine.initial_state(spec, m.normalize_x(x0).reshape(-1, spec.state_dim), m.dtype)
                     for _ in self._models]
@@ -87,6 +95,7 @@ class Simulator:
         b, k, n = obs.shape[:3]
         if k > 1:
             iv = None if times is None else np.repeat(node_intervals(times), n, axis=1)
+            u = m.controls_of(None if u is None else np.asarray(u), self._attrs, b, n, k - 1, "Simulator.warm_up")
             un = None if u is None else to_time_major(m.normalize_u(np.asarray(u)))
             self._zs = [engine.integrate(spec, one.theta, z, self._flat, un, k - 1, backend=self.backend,
                                          intervals=iv)[1] for one, z in zip(self._models, self._zs)]
@@ -107,7 +116,7 @@ class Simulator:
         self._watch(self._zs[0], None if u is None else u[0], self.steps)
         return self.state
 
-    def jacobians(self, u=None, sparse=False):
+    def jacobians(self, u=None, sparse=False, attrs=False):
         """The derivatives of the state after the next step, (Jx, Ju): with respect to the
         current state (messages held at their current values) and to the controls u (B, N, du)
         held over the step (None for a model without controls), as `step` takes them.
@@ -115,8 +124,10 @@ class Simulator:
         In the data's units and the model's dtype, node-major: Jx (B, N*dx, N*dx), Ju
         (B, N*dx, N*du); with ``sparse`` two lists of B scipy CSR arrays, whose pattern
         follows the graph (a node's next state hears nodes a few hops away within one step:
-        `mpnode.engine.jacobians`), for large N.  Exact (the step's own discrete adjoint); it
-        does not advance the simulator.  Needs numba.
+        `mpnode.engine.jacobians`), for large N.  Ju has the user's du columns only: a model's
+        node attributes are no control (``attrs``: a third matrix, Ja (B, N*dx, N*dp), the
+        derivatives with respect to them, for fitting a network's parameters).  Exact (the
+        step's own discrete adjoint); it does not advance the simulator.  Needs numba.
         """
         from mpnode.engine.jacobians import step_jacobians
 
@@ -126,14 +137,26 @@ class Simulator:
             raise InputError("Simulator.jacobians", "model", f"is an ensemble of {m.size} members",
                              "one model (an ensemble's members each have their own state: e.g. "
                              "Simulator(ensemble.members[0], graph))")
+        if attrs and not spec.attr_dim:
+            raise InputError("Simulator.jacobians", "attrs", "is True, but the model has no node attributes",
+                             "attrs=False")
         un = self._controls(u, "Simulator.jacobians")
-        jx, ju = step_jacobians(spec, m.theta, self._zs[0], self.graph, un, sparse)
+        jx, jc = step_jacobians(spec, m.theta, self._zs[0], self.graph, un, sparse)
         n = self.graph.n_nodes
         sx = np.tile(m.x_std, n)  # node-major scales: d x / d xn = std
-        su = np.tile(m.u_std, n)
-        if sparse:
-            return ([_scaled(j, sx, 1 / sx, m.dtype) for j in jx], [_scaled(j, sx, 1 / su, m.dtype) for j in ju])
-        return (jx * (sx[:, None] * (1 / sx))).astype(m.dtype), (ju * (sx[:, None] * (1 / su))).astype(m.dtype)
+        du = spec.control_dim - spec.attr_dim
+        out = (_scaled(jx, sx, 1 / sx, m.dtype, sparse), self._columns(jc, range(du), sx, sparse))
+        return out + (self._columns(jc, range(du, spec.control_dim), sx, sparse),) if attrs else out
+
+    def _columns(self, jc, which, sx, sparse):
+        """Of a step's Jacobian jc with respect to all the controls the network hears (node-major,
+        node j's control_dim columns together), the columns ``which`` of every node, in data units."""
+        m, n, dc = self.model, self.graph.n_nodes, self.model.spec.control_dim
+        which = np.asarray(which, dtype=np.int64)
+        if len(which) < dc:  # the attributes' columns, or the controls' beside them
+            keep = (np.arange(n)[:, None] * dc + which).ravel()
+            jc = [j[:, keep] for j in jc] if sparse else jc[:, :, keep]
+        return _scaled(jc, sx, 1 / np.tile(m.u_std[which], n), m.dtype, sparse)
 
     @property
     def off_range(self):
@@ -176,19 +199,22 @@ class Simulator:
         return out[0] if len(out) == 1 else np.stack(out)
 
     def _controls(self, u, where):
-        """u (B, N, du) in data units as the engine takes it: normalised, flat (B*N, du); None
-        for a model without controls.  InputError naming ``where`` otherwise."""
+        """u (B, N, du) in data units as the engine takes it, the node attributes after it:
+        normalised, flat (B*N, du + dp); None for a model without either.  InputError naming
+        ``where`` otherwise."""
         spec = self.model.spec
-        want = self._shape[:2] + (spec.control_dim,)
+        want = self._shape[:2] + (spec.control_dim - spec.attr_dim,)
         if u is None:
-            if spec.control_dim:
-                raise InputError(where, "u", f"is None, but the model takes controls (du = {spec.control_dim})",
+            if want[2]:
+                raise InputError(where, "u", f"is None, but the model takes controls (du = {want[2]})",
                                  f"controls of shape {want}")
-            return None
-        u = np.asarray(u)
-        if u.shape != want or u.dtype.kind not in "iuf" or not np.all(np.isfinite(u)):
-            raise InputError(where, "u", f"has shape {u.shape} and dtype {u.dtype}", f"finite numbers of shape {want}")
-        return self.model.normalize_u(u).reshape(-1, spec.control_dim)
+        else:
+            u = np.asarray(u)
+            if u.shape != want or u.dtype.kind not in "iuf" or not np.all(np.isfinite(u)):
+                raise InputError(where, "u", f"has shape {u.shape} and dtype {u.dtype}",
+                                 f"finite numbers of shape {want}")
+        full = self.model.controls_of(None if u is None else u[:, None], self._attrs, *want[:2], 1, where)
+        return None if full is None else self.model.normalize_u(full[:, 0]).reshape(-1, spec.control_dim)
 
     @property
     def _z(self):
@@ -213,8 +239,42 @@ def _as_graph(graph):
     raise InputError("graph", "graph", f"is a {type(graph).__name__}", "an mpnode.Graph or a networkx graph")
 
 
-def _scaled(j, rows, cols, dtype):
+def check_weighting(model, graph, source):
+    """InputError unless ``graph`` is weighted exactly when ``model`` hears weighted graphs (a
+    node model reads no graph): mpnode.model.inputs.for_model's rule for a graph of one's own."""
+    weighted_model = model.spec.aggregation.weight_scale is not None
+    if graph.weighted and not weighted_model:
+        raise InputError(source, "graph", "has edge weights but the model was trained on unweighted graphs",
+                         "an unweighted graph (graph.reweighted(None), or a networkx graph without 'weight')")
+    if weighted_model and not graph.weighted and model.kind != "node":
+        raise InputError(source, "graph", "has no edge weights, but the model was trained on weighted graphs",
+                         "a weight on every edge (Graph.weights, or a networkx edge attribute 'weight')")
+
+
+def held_attrs(model, node_attrs, b, n, source):
+    """The node attributes of B copies of N nodes as (B, N, dp) float64 (b None: as given, checked
+    for any B), or None for a model without them; InputError naming ``source`` when the model
+    has attributes and they are missing, or has none and they are given, or their shape is wrong."""
+    if node_attrs is None and not model.spec.attr_dim:
+        return None
+    if b is None:
+        b = np.shape(node_attrs)[0] if np.ndim(node_attrs) == 3 else 1
+        model.controls_of(None, node_attrs, b, n, 1, source)
+        return np.asarray(node_attrs, dtype=np.float64)
+    return np.ascontiguousarray(model.controls_of(None, node_attrs, b, n, 1, source)[:, 0])
+
+
+def _scaled(j, rows, cols, dtype, sparse):
+    """diag(rows) @ j @ diag(cols) of (B, r, c) dense Jacobians, or of a list of scipy CSR arrays,
+    in ``dtype``."""
+    if not sparse:
+        return (j * (rows[:, None] * cols)).astype(dtype)
+    return [_scaled_csr(one, rows, cols, dtype) for one in j]
+
+
+def _scaled_csr(j, rows, cols, dtype):
     """diag(rows) @ j @ diag(cols) for a scipy CSR array, in ``dtype``."""
-    out = j.copy()
-    out.data = (out.data * (rows[np.repeat(np.arange(j.shape[0]), np.diff(j.indptr))] * cols[j.indices])).astype(dtype)
+    out = j.tocsr(copy=True)
+    row_of = np.repeat(np.arange(j.shape[0]), np.diff(out.indptr))
+    out.data = (out.data * (rows[row_of] * cols[out.indices])).astype(dtype)
     return out
