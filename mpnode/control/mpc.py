@@ -18,6 +18,7 @@ from mpnode.base.errors import InputError
 from mpnode.engine.backend import single_threaded_blas
 from mpnode.model.ensemble import models_of
 from mpnode.model.model import batch_graph, to_time_major
+from mpnode.model.simulator import check_weighting, held_attrs
 
 
 def tracking_cost(x_ref, q, r, u_ref=0.0):
@@ -83,7 +84,9 @@ class ShootingMPC:
     next, as offset-free MPC estimates a constant disturbance; the gradient is the model's.
     The model runs in float64 (a float32 model is copied: the line search needs its cost to
     more digits than float32 gives).  An Ensemble plans through its members' mean prediction
-    (the gradient is the mean of theirs), each member carrying its own messages.
+    (the gradient is the mean of theirs), each member carrying its own messages.  A model with
+    node attributes takes them (node_attrs (N, dp) or (B, N, dp), as `mpnode.Simulator`) and
+    hears them after the controls on every step; the plans are of the du controls alone.
 
     >>> mpc = ShootingMPC(model, graph, horizon=10, bounds=(0.0, 4.66))
     >>> mpc.reset(x0, u_guess)                      # (B, N, dx), (B, N, du)
@@ -93,8 +96,10 @@ class ShootingMPC:
 
     """
 
-    def __init__(self, model, graph, horizon, bounds=None, iterations=30, messages="carry", offset_free=False):
-        if not model.spec.control_dim:
+    def __init__(self, model, graph, horizon, bounds=None, iterations=30, messages="carry", offset_free=False,
+                 node_attrs=None):
+        self.du = model.spec.control_dim - model.spec.attr_dim  # the controls planned: not the attributes
+        if not self.du:
             raise InputError("ShootingMPC", "model", "has no controls to optimise (du = 0)", "a model with controls")
         if messages not in ("carry", "zero"):
             raise InputError("ShootingMPC", "messages", f"is {messages!r}", "'carry' or 'zero'")
@@ -103,6 +108,8 @@ class ShootingMPC:
         self.model = model.copy(np.float64)
         self.members = models_of(self.model)
         self.graph, self.horizon, self.bounds, self.iterations = graph, horizon, bounds, iterations
+        check_weighting(model, graph, "ShootingMPC")
+        self.node_attrs = held_attrs(model, node_attrs, None, graph.n_nodes, "ShootingMPC")
         self.messages, self.offset_free = messages, offset_free
         self.info = None  # the last optimisation's cost, iterations, evaluations, seconds
 
@@ -111,9 +118,10 @@ class ShootingMPC:
         x0 = np.asarray(x0, dtype=np.float64)
         self._shape = x0.shape
         self._flat = batch_graph(self.graph, x0.shape[0])
+        self._attrs = held_attrs(self.model, self.node_attrs, *x0.shape[:2], "ShootingMPC.reset")
         xn = self.model.normalize_x(x0).reshape(-1, x0.shape[2])
         self._z = [engine.initial_state(m.spec, xn) for m in self.members]
-        guess = np.broadcast_to(np.asarray(u_guess, dtype=np.float64), x0.shape[:2] + (self.model.spec.control_dim,))
+        guess = np.broadcast_to(np.asarray(u_guess, dtype=np.float64), x0.shape[:2] + (self.du,))
         self.plan = np.repeat(guess[:, None], self.horizon, axis=1)
         self._expected, self._offset = None, 0.0
 
@@ -132,7 +140,7 @@ class ShootingMPC:
         self.plan, self.info = optimise_controls(lambda U: self._predict(z0, U), cost, self.plan, self.bounds,
                                                  self.iterations)
         u = self.plan[:, 0].copy()
-        un = to_time_major(m.normalize_u(u[:, None]))
+        un = self._heard(m, u[:, None])
         self._z = [engine.integrate(member.spec, member.theta, z, self._flat, un, 1)[1]
                    for member, z in zip(self.members, z0)]
         if self.offset_free:
@@ -152,13 +160,19 @@ class ShootingMPC:
         """One model's (X, vjp) from its full state z0."""
         spec = m.spec
         b, n, dx = self._shape
-        un = to_time_major(m.normalize_u(U))
+        un = self._heard(m, U)
         xs, vjp = engine.integrate_with_vjp(spec, m.theta, z0, self._flat, un, U.shape[1])
         X = m.denormalize_x(xs.reshape(-1, b, n, dx).transpose(1, 0, 2, 3))
 
         def grad(dX):
             gx = np.ascontiguousarray((dX * m.x_std).transpose(1, 0, 2, 3)).reshape(xs.shape)
-            gu = vjp(gx, controls=True)[2]
-            return gu.reshape(U.shape[1], b, n, -1).transpose(1, 0, 2, 3) / m.u_std
+            gu = vjp(gx, controls=True)[2][..., :self.du]  # the attributes' columns are no plan's
+            return gu.reshape(U.shape[1], b, n, -1).transpose(1, 0, 2, 3) / m.u_std[:self.du]
 
         return X, grad
+
+    def _heard(self, m, U):
+        """The controls U (B, H, N, du) and the node attributes held beside them, as the engine
+        takes them: normalised, time-major (H, B*N, du + dp)."""
+        b, n, _ = self._shape
+        return to_time_major(m.normalize_u(m.controls_of(U, self._attrs, b, n, U.shape[1], "ShootingMPC")))
