@@ -50,7 +50,8 @@ class Ensemble:
         common = {k: held[k] for k in ("spec", "x_mean", "x_std", "u_mean", "u_std")}
         info = {k: v for k, v in held["ensemble"].items() if k != "spread_scale"}
         seeds = info.get("member_seed")
-        seen = {k: v for k, v in held["attrs"].items() if k == model_file.SEEN_ATTR}  # the training ranges
+        seen = {k: v for k, v in held["attrs"].items()  # the training ranges, and the node attributes they hear
+                if k in (model_file.SEEN_ATTR, "attr_names")}
         members = [model_class(theta, attrs={**seen, **({} if seeds is None else {"seed": int(seeds[i])})}, **common)
                    for i, theta in enumerate(held["theta"])]
         try:
