@@ -370,8 +370,8 @@ def _scene_start(model, model_file, scene, s, system):
     if system.state_dim != model.spec.state_dim:
         raise InputError(scene, "system", f"{s.system} has {system.state_dim} state dimensions per node but the "
                          f"model has {model.spec.state_dim}", "a scene of the system the model learned")
-    if model.spec.control_dim != system.control_dim:
-        raise InputError(model_file, "control_dim", f"the model takes {model.spec.control_dim} controls per node "
+    if user_controls(model) != system.control_dim:
+        raise InputError(model_file, "control_dim", f"the model takes {user_controls(model)} controls per node "
                          f"but {s.system} has {system.control_dim}", "a model of the scene's system")
     model.check_nodes(s.graph.n_nodes, scene, "graph.nodes")
     if system.controllers is None:
@@ -384,7 +384,8 @@ def _scene_start(model, model_file, scene, s, system):
 
 def write_predictions(path, result, traj, data, model_file):
     """The predictions file of `eval`: the prediction (an ensemble's mean) as x, an ensemble's
-    spread as x_std, on the data's graphs and times; nothing written if one is non-finite."""
+    spread as x_std, on the data's graphs (their weights), times, controls and node attributes
+    (not the controls the model heard them as); nothing written if one is non-finite."""
     from mpnode.data import write_trajectories
     from mpnode.evaluation.evaluate import predictions_file, substeps_attrs
 
@@ -393,8 +394,8 @@ def write_predictions(path, result, traj, data, model_file):
     pred = result.predictions[..., :traj.state_dim]  # a model's latent dimensions stay its own
     spread = None if result.spread is None else result.spread[..., :traj.state_dim]
     pf = _or_why(lambda: predictions_file(pred, traj.graphs, traj.graph_index, traj.dt, traj.system,
-                                          os.path.abspath(model_file), traj.u, attrs, traj.t, spread),
-                 result.stability)
+                                          os.path.abspath(model_file), traj.u, attrs, traj.t, spread,
+                                          traj.node_attrs, traj.attr_names), result.stability)
     write_trajectories(path, pf)
 
 
@@ -427,9 +428,12 @@ def _or_why(make, stability):
               help="With a trajectory file DATA in place of SCENE: each simulation starts from the state the "
                    "model estimates from the first K observations of a trajectory of DATA (default 1).")
 @start_option
+@click.option("--ignore-attrs", is_flag=True,
+              help="Leave out the node attributes and edge weights of SCENE or DATA when MODEL was trained "
+                   "without them (OUTPUT keeps them, as the network simulated).")
 @plot_option("the simulated trajectories of the first nodes, per state dimension")
 @substeps_options
-def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup, start, plot, substeps,
+def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup, start, ignore_attrs, plot, substeps,
                  substeps_tol, max_substeps):
     """Roll MODEL out on SCENE (built-in name or .toml): any graph, any number of nodes;
     or onward from the trajectories of a trajectory file DATA (.h5).
@@ -462,6 +466,11 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup,
     number of nodes: one warning per quantity, see `mpnode eval --help`).  An ensemble
     MODEL writes its members' mean as x and its calibrated spread as x_std (--plot shades
     the 90% band).
+
+    A MODEL with node attributes hears those of the scene's trajectories (a _het scene
+    draws them with each trajectory's graph and weights) or of DATA, held over the whole
+    horizon; OUTPUT keeps them and the weighted graphs.  Attributes or weights that are not
+    the model's are refused as `mpnode eval` refuses them (--ignore-attrs as there).
     Exit status: 0 written; 2 bad input (also: more trajectories or steps than memory
     holds, refused before any work; OUTPUT being written by another run); 3 predictions
     non-finite (nothing written); 4 the system refused (OUTPUT could not be written).
@@ -476,12 +485,14 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup,
     claim_outputs({"--output": output, "--plot": plot})
     model = Model.load(model_file)
     if scene.endswith((".h5", ".hdf5")):
-        st = _start_from_data(model, model_file, scene, trajectories, horizon, seed, warmup, start)
+        st = _start_from_data(model, model_file, scene, trajectories, horizon, seed, warmup, start, ignore_attrs)
     else:
         st = _start_from_scene(model, model_file, scene, trajectories, horizon, seed, warmup)
-    sim = simulate(model, st.x0, st.graphs, st.graph_index, st.horizon, substeps=substeps,
-                   substeps_tol=substeps_tol, max_substeps=max_substeps, state_names=st.state_names,
-                   controls=st.controls)
+    graphs, held = heard(model, st, scene, ignore_attrs)
+    controls = st.controls if held is None or st.controls is None else with_attrs(st.controls, held[:, 0])
+    sim = simulate(model, st.x0, graphs, st.graph_index, st.horizon, u=held if st.controls is None else None,
+                   substeps=substeps, substeps_tol=substeps_tol, max_substeps=max_substeps,
+                   state_names=st.state_names, controls=controls)
     warn_off_range(sim.off_range or [])
     for line in format_substeps(sim.substeps, sim.substeps_report, sim.stability):
         click.echo(line.strip(), err=bool(sim.stability.get("message")) and "WARNING" in line)
@@ -498,8 +509,10 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup,
     shown = model.spec.state_dim - model.latent_dims  # latent dimensions stay the model's
     pred = sim.predictions[..., :shown]
     spread = None if sim.spread is None else sim.spread[..., :shown]
+    u = sim.u[..., :user_controls(model)] if sim.u is not None and user_controls(model) else None
     pf = _or_why(lambda: predictions_file(pred, st.graphs, st.graph_index, model.spec.dt, st.system,
-                                          os.path.abspath(model_file), sim.u, attrs=attrs, spread=spread), sim.stability)
+                                          os.path.abspath(model_file), u, attrs=attrs, spread=spread,
+                                          node_attrs=st.node_attrs, attr_names=st.attr_names), sim.stability)
     write_trajectories(output, pf)
     b, n = st.x0.shape[:2]
     node_steps = b * n * st.horizon
@@ -522,6 +535,36 @@ class SimulationStart:
     attrs: dict
     state_groups: list = None
     controls: object = None  # a closed loop: controls(k, x) -> u, the scene's controllers (data_gen)
+    node_attrs: object = None  # (B, N, dp) the nodes' static attributes, named attr_names
+    attr_names: list = None
+
+
+def user_controls(model):
+    """The controls a user gives ``model`` per node: its control_dim without its node attributes."""
+    return model.spec.control_dim - model.spec.attr_dim
+
+
+def heard(model, st, source, ignore_attrs):
+    """(graphs, attributes held (B, horizon, N, dp) or None): the start ``st``'s network as ``model``
+    hears it, checked as `mpnode eval` checks a file (mpnode.model.inputs.for_model: attributes and
+    weights that are not the model's refused, or left out with ``ignore_attrs``)."""
+    import numpy as np
+
+    from mpnode.data import Trajectories
+    from mpnode.model.inputs import for_model
+
+    x = np.broadcast_to(st.x0[:, None], (st.x0.shape[0], st.horizon + 1) + st.x0.shape[1:])  # the horizon: no copy
+    probe = Trajectories(x=x, graphs=list(st.graphs), dt=model.spec.dt, system=st.system,
+                         graph_index=np.asarray(st.graph_index), node_attrs=st.node_attrs, attr_names=st.attr_names)
+    out = for_model(model, probe, source, ignore_attrs)
+    return out.graphs, out.u
+
+
+def with_attrs(controls, attrs):
+    """A closed loop's controls(k, x) with the node attributes attrs (B, N, dp) after its own."""
+    import numpy as np
+
+    return lambda k, x: np.concatenate([np.asarray(controls(k, x), dtype=np.float64), attrs], axis=2)
 
 
 def _start_from_scene(model, model_file, scene, trajectories, horizon, seed, warmup):
@@ -545,16 +588,27 @@ def _start_from_scene(model, model_file, scene, trajectories, horizon, seed, war
     x0, graphs, gi, controls = _scene_start(model, model_file, scene, s, system)
     return SimulationStart(x0, graphs, gi, s.horizon, s.system, s.name, s.description,
                            list(system.state_names) or None, {"scene": s.name, "seed": s.seed, **s.graph.describe()},
-                           list(system.state_groups) or None, controls)
+                           list(system.state_groups) or None, controls, *_scene_attrs(s, system))
 
 
-def _start_from_data(model, model_file, path, trajectories, horizon, seed, warmup, start):
+def _scene_attrs(s, system):
+    """(node_attrs (B, N, dp), attr_names) of a scene whose trajectories draw their own, the draws
+    that gave the initial states' graphs their weights (data_gen.per_trajectory); else (None, None)."""
+    from data_gen.per_trajectory import scene_graphs
+
+    if system.draw_trajectory is None:
+        return None, None
+    made = scene_graphs(s)
+    return made.node_attrs, list(made.attr_names)
+
+
+def _start_from_data(model, model_file, path, trajectories, horizon, seed, warmup, start, ignore_attrs=False):
     """Each trajectory of the file at ``path`` continued from its first ``warmup`` observations."""
     from mpnode.data import read_trajectories
     from mpnode.evaluation.evaluate import continue_from, subset
 
-    if model.spec.control_dim:
-        raise InputError(model_file, "control_dim", f"the model takes controls (du = {model.spec.control_dim}) "
+    if user_controls(model):
+        raise InputError(model_file, "control_dim", f"the model takes controls (du = {user_controls(model)}) "
                          "but a trajectory file's continuation has none", "a model without controls, or a scene")
 
     if seed is not None:
@@ -564,13 +618,14 @@ def _start_from_data(model, model_file, path, trajectories, horizon, seed, warmu
     if trajectories is not None:
         traj = subset(traj, list(range(min(trajectories, traj.n_trajectories))))
     _warn_system(model, traj.system, path)
-    x0, steps = continue_from(model, traj, warmup or 1, start, path)
+    x0, steps = continue_from(model, traj, warmup or 1, start, path, ignore_attrs)
     names, groups = traj.attrs.get("state_names"), traj.attrs.get("state_groups")
     return SimulationStart(x0, traj.graphs, traj.graph_index, horizon or steps, traj.system,
                            os.path.basename(path), f"the trajectories of {os.path.basename(path)}",
                            list(names) if names is not None else None,
                            {"simulated_from": os.path.abspath(path), "warmup": warmup or 1},
-                           list(groups) if groups is not None else None)
+                           list(groups) if groups is not None else None, node_attrs=traj.node_attrs,
+                           attr_names=traj.attr_names)
 
 
 def _warn_system(model, system, source):

@@ -462,10 +462,13 @@ def learned_seconds_per_trajectory(model, traj, k, repeats=3):
     return best / k
 
 
-def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, attrs=None, t=None, spread=None):
+def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, attrs=None, t=None, spread=None,
+                     node_attrs=None, attr_names=None):
     """Trajectories holding ``pred`` (B, T+1, N, dx) on ``graphs`` (and controls ``u``), at the
     observation times ``t`` (B, T+1) when the data had their own; an ensemble's calibrated
-    ``spread`` (like pred) as ``x_std``.
+    ``spread`` (like pred) as ``x_std``; the nodes' ``node_attrs`` (B, N, dp) named ``attr_names``
+    as the data held them (the graphs keep their weights), so that the file describes the same
+    network as the data it predicts and a model reads it as it read them.
 
     attrs say they are predictions (``predicted_by`` = model_name); raises NumericalError
     when a prediction is non-finite (the trajectory format forbids it).
@@ -477,7 +480,8 @@ def predictions_file(pred, graphs, graph_index, dt, system, model_name, u=None, 
     attrs = {"predicted_by": str(model_name), "prediction": 1, **(attrs or {})}
     return Trajectories(x=pred, graphs=list(graphs), dt=dt, system=system, u=u,
                         graph_index=np.asarray(graph_index) if len(graphs) > 1 else None, attrs=attrs, t=t,
-                        x_std=None if spread is None else np.asarray(spread, dtype=np.asarray(pred).dtype))
+                        x_std=None if spread is None else np.asarray(spread, dtype=np.asarray(pred).dtype),
+                        node_attrs=node_attrs, attr_names=None if node_attrs is None else list(attr_names))
 
 
 def substeps_attrs(substeps, auto_report):
