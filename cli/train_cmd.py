@@ -118,7 +118,7 @@ def training_options(f):
                      "Default: the recipe's (0 unless the README's recipe table says otherwise)."),
         click.option("--ignore-attrs", is_flag=True, default=False,
                      help="Learn as if the data had neither node attributes nor edge weights (by default a model "
-                          "hears both whenever the files have them)."),
+                          "hears both whenever the files have them; finetune: only a MODEL trained without them)."),
         click.option("--resume", is_flag=True,
                      help="Continue the run whose checkpoint (OUTPUT.state) is beside -o; its settings are kept "
                           "except --epochs and --time-limit."),
@@ -527,7 +527,9 @@ def finetune_cmd(model_file, data, refit_norm, recipe, **o):
     Starts from exactly MODEL's weights (its kind, dimensions, dt, message settings and,
     by default, its normalisation), e.g. a Lorenz3 model becomes a Lorenz10 model with a
     few dozen Lorenz10 trajectories.  Same flags, files and exit statuses as `mpnode train`;
-    a MODEL trained on another system than DATA's is used, with a warning.
+    a MODEL trained on another system than DATA's is used, with a warning.  DATA must have the
+    node attributes (the same names, in order) and the edge weights MODEL hears, as for
+    `mpnode eval`; --ignore-attrs leaves out those of DATA for a MODEL trained without them.
     """
     from mpnode import runs
 

@@ -108,11 +108,13 @@ def calibration(ensemble, datasets, names, options, notify=None):
     true values (their rollouts from the first observation, steps 1..T); 1 without validation data."""
     from mpnode.evaluation.evaluate import evaluate, subset
 
-    data = TrainingData(datasets, runs.split_options(options)[1], names)
+    config = runs.split_options(options)[1]
+    split = TrainingData(datasets, config, names).split
     truth, mean, std = [], [], []
-    for traj, (_, val), name in zip(data.datasets, data.split, names):
+    for traj, (_, val), name in zip(datasets, split, names):  # the files as read: evaluate hears them as the model
         if len(val):
-            r = evaluate(ensemble, subset(traj, val), source=name, check_stability=False)
+            r = evaluate(ensemble, subset(traj, val), source=name, check_stability=False,
+                         ignore_attrs=config.ignore_attrs)
             truth.append(r.scored[:, 1:].reshape(-1, traj.state_dim))
             mean.append(r.predictions[:, 1:].reshape(-1, traj.state_dim))
             std.append(r.member_std[:, 1:].reshape(-1, traj.state_dim))

@@ -17,6 +17,7 @@ from mpnode.engine import numba_problem
 from mpnode.model import Model
 from mpnode.model.config import ModelConfig, configured
 from mpnode.model.ensemble import Ensemble
+from mpnode.model.inputs import for_model
 from mpnode.model.provenance import system_mismatch
 from mpnode.model.ranges import KEY as RANGES
 from mpnode.model.ranges import training_ranges
@@ -187,23 +188,39 @@ def finetune(model_path, paths, output, options=None, *, refit_norm=None, recipe
     if isinstance(model, Ensemble):
         raise InputError(model_path, "ensemble_size", f"is an ensemble of {model.size} models",
                          "mpnode.runs.ensemble.train_ensemble (the command line: finetune --ensemble K)")
+    names = list(map(str, names or paths))
     if model is not None:
         datasets = [model.fitted(t) for t in datasets]
+        check_finetune_inputs(model, datasets, names, check_bool(options.get("ignore_attrs", False), "options",
+                                                                 "ignore_attrs"))
     if not resume:
         options, chosen = fill_unset(options, finetune_recipe(recipe_name, model.kind, datasets[0].system))
         _announce(notify, chosen, f"recipe {recipe_name} for fine-tuning")
-        warning = system_mismatch(model, datasets[0].system, (names or paths)[0])
+        warning = system_mismatch(model, datasets[0].system, names[0])
         if warning and notify:
             notify(f"warning: {warning}")
     model_config, config = split_options({"norm": "keep", **options})
     one_model(config)
     if model is not None and "substeps" in options:
         model = model.with_spec(substeps=model_config.substeps)
-    names = list(map(str, names or paths))
     attrs = _attrs(names, datasets, finetuned_from=parent_name or os.path.abspath(model_path),
                    finetune_recipe=recipe_name)
-    return with_ranges(fit(model, TrainingData(datasets, config, names), config, output, resume=resume,
-                           progress=progress, notify=notify, model_attrs=attrs), datasets, output)
+    data = TrainingData(datasets, config, names)
+    return with_ranges(fit(model, data, config, output, resume=resume, progress=progress, notify=notify,
+                           model_attrs=attrs), data.datasets, output)
+
+
+def check_finetune_inputs(model, datasets, names, ignore_attrs):
+    """InputError, before any work, unless the files' node attributes and edge weights are the
+    model's (as `mpnode eval` checks them: mpnode.model.inputs.for_model); ``ignore_attrs`` leaves
+    out those of a model trained without them, and a model that hears attributes cannot."""
+    heard = ([f"node attributes ({', '.join(model.attr_names)})"] if model.attr_names else []) + \
+        (["edge weights"] if model.spec.aggregation.weight_scale is not None else [])
+    if ignore_attrs and heard:
+        raise InputError("options", "ignore_attrs", f"is set, but the model hears {' and '.join(heard)}",
+                         "no --ignore-attrs: fine-tuning keeps what the model hears")
+    for traj, name in zip(datasets, names):
+        for_model(model, traj, name, ignore_attrs)
 
 
 def with_ranges(result, datasets, output):
