@@ -19,6 +19,7 @@ import scipy.sparse
 import scipy.sparse.csgraph
 
 from mpnode.base.errors import InputError, NumericalError
+from mpnode.engine.backend import single_threaded_blas
 
 from .graphs import symmetric_weights
 
@@ -133,7 +134,8 @@ def operating_point(graph, power, source="grid", field="power", inertia=None):
     """
     check_grid(graph, power, source, field)
     power = np.asarray(power, dtype=np.float64)
-    theta = _solve(graph, power)
+    with single_threaded_blas():  # the generator's processes solve side by side: BLAS threads would fight them
+        theta = _solve(graph, power)
     left, J = mismatch(theta, graph, power)
     scale = max(np.abs(power).max(), 1.0)
     if not np.abs(left).max() <= MATCH_TOL * scale:
@@ -141,7 +143,7 @@ def operating_point(graph, power, source="grid", field="power", inertia=None):
         raise InputError(source, field, f"has no synchronous state: the lines cannot carry these powers (the "
                          f"closest angles leave {abs(left[k]):.3g} pu unmatched at bus {k})",
                          "powers within the lines' capacity: smaller powers or stronger lines")
-    if not _stable(-J):
+    if not _stable(graph, theta, J):
         raise InputError(source, field, "has only an unstable synchronous state (a line beyond 90 degrees)",
                          "powers within the lines' capacity: smaller powers or stronger lines")
     w = np.ones_like(theta) if inertia is None else np.asarray(inertia, dtype=np.float64)
@@ -155,21 +157,33 @@ def _solve(graph, power):
         return left[1:], J[1:, 1:]
 
     _, J = mismatch(np.zeros(graph.n_nodes), graph, power)
-    x = np.linalg.lstsq(-J[1:, 1:], power[1:], rcond=None)[0]  # the DC angles
+    x = _linear_solve(-J[1:, 1:], power[1:])  # the DC angles
     x = scipy.optimize.root(reduced, x, jac=True, method="hybr").x
     for _ in range(3):  # hybr stops near 1e-9; Newton takes the last digits
         left, J = reduced(x)
-        step = np.linalg.lstsq(J, -left, rcond=None)[0]
+        step = _linear_solve(J, -left)
         if not np.all(np.isfinite(step)):
             break
         x = x + step
     return np.concatenate([[0.0], x])
 
 
-def _stable(L):
-    """The cosine-weighted Laplacian at a synchronous state: positive semidefinite with one zero
-    eigenvalue (the common angle) -- every disturbance but a common turn decays."""
-    ev = np.linalg.eigvalsh((L + L.T) / 2)
+def _linear_solve(A, b):
+    """A^-1 b, or the least-squares answer where A is singular."""
+    try:
+        return np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+def _stable(graph, theta, J):
+    """The cosine-weighted Laplacian -J at a synchronous state: positive semidefinite with one zero
+    eigenvalue (the common angle) -- every disturbance but a common turn decays.  On a connected
+    grid whose every line has B_ij cos(theta_i - theta_j) > 0 it is, without eigenvalues."""
+    r, s = graph.edges().T
+    if np.all(graph.weights * np.cos(theta[r] - theta[s]) > 0):
+        return True
+    ev = np.linalg.eigvalsh(-(J + J.T) / 2)
     tol = 1e-10 * max(abs(ev).max(), 1.0)
     return ev[0] > -tol and ev[1] > tol
 
@@ -256,6 +270,6 @@ def _synchronous(graph, power):
 def _largest_dc_angle(graph, power):
     """The largest |theta_i - theta_j| over the lines of the linearised flow (sin x = x)."""
     _, J = mismatch(np.zeros(graph.n_nodes), graph, power)
-    theta = np.linalg.lstsq(-J, power, rcond=None)[0]
+    theta = np.concatenate([[0.0], _linear_solve(-J[1:, 1:], power[1:])])
     r, s = graph.edges().T
     return np.abs(theta[r] - theta[s]).max()
