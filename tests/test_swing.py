@@ -10,7 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from cli.main import main
-from data_gen import BUILTIN, SETS, generate, integrate, make_rhs, read_scene
+from data_gen import BUILTIN, SETS, generate, initial_states, integrate, make_rhs, read_scene
 from data_gen import grids
 from data_gen.graphs import power_grid_graph
 from data_gen.per_trajectory import scene_graphs
@@ -256,6 +256,17 @@ def test_the_disturbance_is_drawn_from_the_trajectory_generator_alone():
                                   node_attrs=attrs, params=DEFAULTS)
     np.testing.assert_array_equal(draw(1), draw(1))
     assert not np.allclose(draw(1), draw(2))
+
+
+@pytest.mark.parametrize("name", ["grid10", "ieee14"])
+def test_simulate_starts_from_the_states_and_grids_generate_draws(name):
+    if name.startswith("ieee"):
+        pypower_or_skip()
+    scene = small(name, B=3, T=2)
+    t = generate(scene, workers=2)
+    x0, graphs, gi = initial_states(scene)  # what `mpnode simulate` starts from
+    np.testing.assert_array_equal(x0, t.x[:, 0])
+    assert all(graphs[gi[b]].equals(t.graph_of(b)) for b in range(3))
 
 
 @pytest.mark.parametrize("name", ["grid10", "ieee14"])
