@@ -14,7 +14,7 @@ import secrets
 import stat
 
 from .errors import InputError
-from .oserrors import FileSystemError, file_error
+from .oserrors import FileSystemError, as_os_error, file_error
 
 
 @contextlib.contextmanager
@@ -50,6 +50,7 @@ def atomic_paths(*paths):
         for _, tmp in temps:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(tmp)
+        e = as_os_error(e) or e
         if isinstance(e, OSError):
             path = _named(e, temps, paths)
             if isinstance(e, FileSystemError) and e.filename != path:  # a nested write named our temporary file

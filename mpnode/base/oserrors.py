@@ -71,6 +71,15 @@ def file_error(error, path, doing="write", left=None):
     return FileSystemError(code, strerror, os.fspath(path), doing, left)
 
 
+def as_os_error(error):
+    """``error`` as an OSError: itself, or libhdf5's RuntimeError that names the system's errno
+    (a write that failed when the file was closed, e.g. on a full disk); None for anything else."""
+    if isinstance(error, OSError):
+        return error
+    code = _errno_in_text(str(error)) if isinstance(error, RuntimeError) else None
+    return OSError(code, os.strerror(code)) if code else None
+
+
 def _errno_in_text(text):
     """The errno some libraries (libhdf5) give only in their message ("errno = 28"), or None."""
     match = re.search(r"errno = (\d+)", text)
