@@ -476,8 +476,7 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup,
     non-finite (nothing written); 4 the system refused (OUTPUT could not be written).
     """
     from mpnode.base.atomic import check_outputs
-    from mpnode.data import write_trajectories
-    from mpnode.evaluation.evaluate import predictions_file, simulate, substeps_attrs
+    from mpnode.evaluation.evaluate import simulate
     from mpnode.model import Model
 
     check_plot(plot)
@@ -502,18 +501,7 @@ def simulate_cmd(model_file, scene, output, trajectories, horizon, seed, warmup,
         plot_simulation(sim.predictions, model.spec.dt, plot, state_names=st.state_names,
                         title=f"{os.path.basename(model_file)} ({model.kind}) on {st.name}", spread=sim.spread)
         click.echo(f"wrote {plot}")
-    attrs = {**st.attrs, "description": f"{model.kind} rollout of {st.description}",
-             **substeps_attrs(sim.substeps, sim.substeps_report),
-             **({"state_names": st.state_names} if st.state_names else {}),
-             **({"state_groups": st.state_groups} if st.state_groups else {})}
-    shown = model.spec.state_dim - model.latent_dims  # latent dimensions stay the model's
-    pred = sim.predictions[..., :shown]
-    spread = None if sim.spread is None else sim.spread[..., :shown]
-    u = sim.u[..., :user_controls(model)] if sim.u is not None and user_controls(model) else None
-    pf = _or_why(lambda: predictions_file(pred, st.graphs, st.graph_index, model.spec.dt, st.system,
-                                          os.path.abspath(model_file), u, attrs=attrs, spread=spread,
-                                          node_attrs=st.node_attrs, attr_names=st.attr_names), sim.stability)
-    write_trajectories(output, pf)
+    _write_simulation(model, model_file, st, sim, output)
     b, n = st.x0.shape[:2]
     node_steps = b * n * st.horizon
     click.echo(f"wrote {output}: {st.name}, B={b}, T={st.horizon}, N={n}, "
@@ -600,6 +588,26 @@ def _scene_attrs(s, system):
         return None, None
     made = scene_graphs(s)
     return made.node_attrs, list(made.attr_names)
+
+
+def _write_simulation(model, model_file, st, sim, output):
+    """The simulated trajectories as a trajectory file: the data's own dimensions, controls and
+    network (attributes, weighted graphs), named after the model and the substeps used."""
+    from mpnode.data import write_trajectories
+    from mpnode.evaluation.evaluate import predictions_file, substeps_attrs
+
+    attrs = {**st.attrs, "description": f"{model.kind} rollout of {st.description}",
+             **substeps_attrs(sim.substeps, sim.substeps_report),
+             **({"state_names": st.state_names} if st.state_names else {}),
+             **({"state_groups": st.state_groups} if st.state_groups else {})}
+    shown = model.spec.state_dim - model.latent_dims  # latent dimensions stay the model's
+    pred = sim.predictions[..., :shown]
+    spread = None if sim.spread is None else sim.spread[..., :shown]
+    u = sim.u[..., :user_controls(model)] if sim.u is not None and user_controls(model) else None
+    pf = _or_why(lambda: predictions_file(pred, st.graphs, st.graph_index, model.spec.dt, st.system,
+                                          os.path.abspath(model_file), u, attrs=attrs, spread=spread,
+                                          node_attrs=st.node_attrs, attr_names=st.attr_names), sim.stability)
+    write_trajectories(output, pf)
 
 
 def _start_from_data(model, model_file, path, trajectories, horizon, seed, warmup, start, ignore_attrs=False):

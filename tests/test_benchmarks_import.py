@@ -12,7 +12,8 @@ SHARED = {"common", "runs_shared", "paper_numbers", "gene_grid"}
 #: the study scripts kept in the tree
 STUDIES = {"imperfect_data.py", "long_rollouts.py", "spread_ranking.py", "time_to_accuracy.py", "tta_torch.py",
            "mpc/figures.py", "mpc/pendulum_mpc.py", "mpc/plan_windows.py", "mpc/quadrotor_mpc.py",
-           "mpc/torque_segments.py", "mpc/true_equations.py", "quadrotor/sizes_table.py", "quadrotor/swarm.py"}
+           "mpc/torque_segments.py", "mpc/true_equations.py", "quadrotor/sizes_table.py", "quadrotor/swarm.py",
+           "spring_chains.py"}
 
 IMPORT_ALL = """
 import importlib.util, sys, traceback

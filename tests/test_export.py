@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from engine_helpers import make_graph, random_model
+from export_helpers import load_module, onnx_runtime
 
 from cli.main import main
 from mpnode import write_trajectories
@@ -60,20 +61,6 @@ def inputs(du, dtype, dx=DX, seed=2):
     rng = np.random.default_rng(seed)
     return rng.standard_normal((B, N, dx)).astype(dtype), (rng.standard_normal((B, T, N, du)).astype(dtype)
                                                            if du else None)
-
-
-def onnx_runtime():
-    """The onnxruntime module; the test skips where the onnx extra is not installed."""
-    why = "needs the onnx extra (pip install '.[onnx]')"
-    pytest.importorskip("onnx", reason=why)
-    return pytest.importorskip("onnxruntime", reason=why)
-
-
-def load_module(path):
-    spec = importlib.util.spec_from_file_location("exported", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

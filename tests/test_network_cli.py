@@ -7,7 +7,7 @@ import networkx as nx
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_network_inputs import relaxing_nodes, ring
+from network_helpers import relaxing_nodes, ring
 
 from cli.main import main
 from mpnode import InputError, Simulator

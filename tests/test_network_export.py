@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from network_helpers import relaxing_nodes
-from test_export import load_module, onnx_runtime
+from export_helpers import load_module, onnx_runtime
 
 from cli.main import main
 from mpnode import training
