@@ -286,8 +286,9 @@ def add_rows(src, col0, width, indptr, indices, ew, weight, self_msg, i0, i1, zo
         for p in range(indptr[i], indptr[i + 1]):
             j = indices[p] - zoff
             if edge_weighted:
+                w = ew[p]  # read once: in the loop the compiler could not prove it unchanged by the stores
                 for d in range(width):
-                    out[r, ocol0 + d] += ew[p] * src[j, col0 + d]
+                    out[r, ocol0 + d] += w * src[j, col0 + d]
             else:
                 for d in range(width):
                     out[r, ocol0 + d] += src[j, col0 + d]
