@@ -1,5 +1,6 @@
 """How the kernels cover a graph (`Plan`): blocks of whole graphs (dense or CSR), or one large
 graph renumbered for locality; and the graph arrays they read (aggregation weights, the transpose)."""
+import functools
 import weakref
 
 import numpy as np
@@ -117,9 +118,13 @@ class Plan:
             self._transposed = transpose(self.csr)
         return self._transposed
 
-    @property
+    @functools.cached_property
     def edge_weight(self):
         return edge_array(self.csr, self.dtype, self.weight_scale)
+
+    @functools.cached_property
+    def _transposed_edge_weight(self):
+        return edge_array(self.transposed, self.dtype, self.weight_scale)
 
     def kernel_graph(self):
         """The graph tuple the kernels read: (indptr, indices, weight, edge weights)."""
@@ -128,7 +133,7 @@ class Plan:
     def kernel_transposed(self):
         """The transpose as the kernels read it: (indptr, indices, edge weights)."""
         t = self.transposed
-        return t.indptr, t.indices, edge_array(t, self.dtype, self.weight_scale)
+        return t.indptr, t.indices, self._transposed_edge_weight
 
     def to_kernel_order(self, a, axis=0):
         """``a`` with its node axis (0, or 1 of a (T, M, ...) array) in the kernels' order (``a``
