@@ -100,16 +100,19 @@ def evaluate_and_report(model, traj, source, allow_dt=False, reference_sample=20
     returns (EvalResult, report dict)."""
     from data_gen.invariants import invariant_of
     from data_gen.reference import speed_against_reference
+    from data_gen.systems import node_view
     from mpnode.evaluation import stepsize
     from mpnode.evaluation.evaluate import evaluate
     from mpnode.plot import dimension_names
 
     invariant = invariant_of(traj)
+    node_dims, node_names = node_view(traj)
     result = evaluate(model, traj, source=source, allow_dt_mismatch=allow_dt, substeps=substeps,
                       substeps_tol=substeps_tol or stepsize.DEFAULT_TOL,
                       max_substeps=max_substeps or stepsize.DEFAULT_MAX_SUBSTEPS, warmup=warmup, truth=truth,
                       start=start, invariant=invariant and invariant[1], ignore_attrs=ignore_attrs,
-                      state_names=dimension_names(model.fitted(traj).attrs, model.spec.state_dim))
+                      state_names=dimension_names(model.fitted(traj).attrs, model.spec.state_dim),
+                      node_dims=node_dims, node_names=node_names)
     report = {"data": source, **result.summary(), "state_names": traj.attrs.get("state_names"),
               **({"invariant": invariant[0]} if invariant else {})}
     if reference_sample > 0 and traj.regular:
@@ -164,6 +167,7 @@ def format_report(report, model_name):
                      + (f" (dimension(s) {r['hidden_dims']} never measured in training: not scored)"
                         if r.get("hidden_dims") else ""))
     lines.append("  per step: " + _at(r["nmse_per_step"], steps))
+    lines += format_nodes(r)
     lines += _against_hold(r, steps)
     lines += format_trust(r)
     if r["first_bad_step"] is None:
@@ -193,6 +197,27 @@ def format_report(report, model_name):
     elif "reference" in r:
         lines.append("  reference: the file names no system data_gen can rebuild; not timed")
     return "\n".join(lines)
+
+
+def format_nodes(r):
+    """The lines on where on the network the error lies: the median node and the worst ones, by their
+    error on the watched dimensions (mpnode.evaluation.nodes)."""
+    v = r.get("per_node")
+    if not v or v["median"] is None:
+        return []
+    names = r.get("state_names") or [f"x[{k}]" for k in range(len(v["nmse_per_dim"][0]))]
+    which = ("the whole state" if len(v["dims"]) == len(v["nmse_per_dim"][0])
+             else ", ".join(str(names[d]) if d < len(names) else f"x[{d}]" for d in v["dims"]))
+    on = (f"all {v['trajectories']} trajectories" if v["all_trajectories"]
+          else f"{v['trajectories']} of the {r['trajectories']} trajectories, the others on other graphs")
+
+    def node(e):
+        label = e["name"] if e["name"] == f"node {e['node']}" else f"{e['name']} (node {e['node']})"
+        return f"{label} {_g(e['nmse'])}, {_g(e['rmse'])}"
+
+    return [f"  per node, by {which} (graph {v['graph']}, {on}; nMSE, RMS error in the data's units): "
+            f"median {node(v['median'])}",
+            "    worst: " + "; ".join(node(e) for e in v["worst"])]
 
 
 def format_spread(r):
@@ -300,6 +325,12 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, ignore_a
     whichever is faster -- timed beside the learned rollout of the same states; the
     report says which setting, what was tried, and whether the model is faster or slower.
     A MODEL trained on another system than DATA's is evaluated, with a warning.
+
+    Where on the network: each node's error over the trajectories on the graph most of
+    them run on (all when they share one; with a graph each, the first trajectory's), on
+    the state dimensions a user of DATA's system watches node by node (a power grid's
+    frequency deviation, bus by bus; else the whole state): the median node and the five
+    worst, as nMSE and as RMS error in the data's units (--json: per_node, every node's).
 
     How far to trust the error: the nMSE by block of steps (error against horizon;
     --json: nmse_by_block); the inputs of the model's rollouts that leave the ranges it

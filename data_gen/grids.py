@@ -40,6 +40,16 @@ def load_case(number, source):
     return getattr(api, f"case{number}")()
 
 
+def bus_names(attrs, n):
+    """["bus 1", "bus 2", ...]: a file's n buses by the numbers of the case they come from (the
+    attribute grid_bus_numbers), or None when the file records none for n buses."""
+    numbers = attrs.get("grid_bus_numbers")
+    numbers = None if numbers is None else np.atleast_1d(numbers)
+    if numbers is None or len(numbers) != n:
+        return None
+    return [f"bus {int(b)}" for b in numbers]
+
+
 def case_network(case, source):
     """(weighted Graph of B_ij, balanced powers (N,), generator buses (N,) bool, record) of a
     MATPOWER-format case dict (module docstring).  InputError naming ``source`` and the field for an

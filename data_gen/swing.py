@@ -26,6 +26,8 @@ from .graphs import symmetric_weights
 #: the node attributes, in the columns of node_attrs
 ATTR_NAMES = ("inertia (pu s^2)", "damping (pu s)", "power (pu)")
 STATE_NAMES = ("cos angle", "sin angle", "frequency deviation (rad/s)")
+#: the state dimension a grid's operator watches bus by bus: omega, the frequency deviation
+FREQUENCY = 2
 #: the system's scalar parameters: the inertia and damping rule, the disturbances, the synthetic family
 DEFAULTS = dict(
     f_gen=0.7, f_load=1.4, gamma=1.0,                      # rule: own swing frequency (Hz), D / M (1/s)

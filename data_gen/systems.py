@@ -19,6 +19,7 @@ from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph
 
 from . import forced_pendulum, quadrotor, swing
+from .grids import bus_names
 from .graphs import symmetric_weights
 
 #: the pendulum is refused where |cos(theta)| falls below this (the RHS divides by it)
@@ -210,6 +211,9 @@ class System:
     state_groups : the group each state dimension belongs to (e.g. position, attitude), or () when
         the state is one group; files carry them as ``state_groups`` and `mpnode eval` reports each
         group's error
+    node_dims : the state dimensions a user watches node by node (the swing equation's frequency
+        deviation): `mpnode eval` ranks the nodes by their error on them and draws the worst and
+        the median node's; () for the whole state
     time_scale : (scalar parameters) -> the time over which a trajectory changes appreciably
         (docs/systems.md#time-scales); saved steps longer than MAX_DT_TIME_SCALES of it are refused
     attr_names : systems whose nodes differ: one name (with its unit) per node attribute; files carry
@@ -239,6 +243,7 @@ class System:
     control_dim: int = 0
     state_names: tuple = ()
     state_groups: tuple = ()
+    node_dims: tuple = ()
     time_scale: Callable = lambda p: 1.0
     attr_names: tuple = ()
     draw_trajectory: Callable = None
@@ -384,7 +389,8 @@ SYSTEMS = {
                attr_names=("natural frequency (rad/s)",), draw_trajectory=draw_kuramoto_het,
                ranges=(("omega_min", "omega_max", None), ("w_min", "w_max", 0.0))),
         System("swing", 3, dict(swing.DEFAULTS), low=(), high=(), draw=_nothing_drawn, rhs=_swing,
-               samplers=("disturbed",), state_names=swing.STATE_NAMES, time_scale=swing.time_scale,
+               samplers=("disturbed",), state_names=swing.STATE_NAMES, node_dims=(swing.FREQUENCY,),
+               time_scale=swing.time_scale,
                attr_names=swing.ATTR_NAMES, draw_trajectory=swing.draw_grid,
                ranges=(("b_min", "b_max", 0.0), ("gen_min", "gen_max", 0.0), ("angle_min", "angle_max", 0.0))),
         # rhs: f(t, y, F) on the state INCLUDING the load, thrusts F held (see quadrotor.py)
@@ -403,6 +409,16 @@ def get_system(name, source="system", field="system"):
         return SYSTEMS[name]
     except (KeyError, TypeError):
         raise InputError(source, field, f"unknown system {name!r}", "one of " + ", ".join(SYSTEMS)) from None
+
+
+def node_view(traj):
+    """(dims, names) of `mpnode eval`'s error per node of a file: the state dimensions its system's
+    users watch node by node (System.node_dims; None for the whole state, also for a file of no
+    system here or of other dimensions) and what to call its nodes (a grid case's buses by their
+    numbers; None: by index)."""
+    system = SYSTEMS.get(traj.system)
+    known = system is not None and system.state_dim == traj.state_dim and system.node_dims
+    return (list(system.node_dims) if known else None), bus_names(traj.attrs, traj.n_nodes)
 
 
 def make_rhs(system, params, graph, node_attrs=None):

@@ -2,7 +2,8 @@
 predictable horizon), evaluation and simulation of whole files, and RK4 substeps chosen by
 step doubling.
 
-Owns: `metrics`, `evaluate`, `spread` (an ensemble's bands and spread), `stepsize`.  May import: mpnode.model, mpnode.data,
+Owns: `metrics`, `evaluate`, `nodes` (each node's error), `spread` (an ensemble's bands and spread),
+`stepsize`.  May import: mpnode.model, mpnode.data,
 mpnode.engine, mpnode.base.
 """
 from .evaluate import EvalResult, SimulationResult, evaluate, simulate  # noqa: F401

@@ -23,6 +23,7 @@ from mpnode.model.ensemble import Ensemble, models_of
 from mpnode.model.start import fit_initial_state
 
 from . import stepsize
+from .nodes import NodeErrors, node_errors
 from .metrics import (
     HORIZON_THRESHOLDS,
     _mean,
@@ -66,6 +67,7 @@ class EvalResult:
     ensemble : of an ensemble, mpnode.evaluation.spread.spread_figures (coverage, spread); else None
     per_dim, hold_per_dim : (T+1, dx) normalised MSE per step and state dimension, of the model and
         of holding the initial state;  groups : {group: [dimensions]} of the file's state_groups
+    nodes : mpnode.evaluation.nodes.NodeErrors, each node's error on the graph most trajectories run on
     """
 
     nmse_per_step: np.ndarray
@@ -95,6 +97,7 @@ class EvalResult:
     per_dim: np.ndarray = None
     hold_per_dim: np.ndarray = None
     groups: dict = None
+    nodes: NodeErrors = None
 
     @property
     def hold_per_step(self):
@@ -125,6 +128,7 @@ class EvalResult:
                 "suggested_substeps": self.stability and self.stability["suggested_substeps"],
                 "stability": self.stability, "predictable_horizon": self.horizons, "warmup": self.warmup,
                 "nmse_per_dim": [_num(float(v)) for v in self.nmse_per_dim or []], "hidden_dims": self.hidden_dims or [],
+                "per_node": self.nodes and self.nodes.summary(self.n_trajectories),
                 **self.trust(), "coverage_50": None, "coverage_90": None, **(self.ensemble or {})}
 
     def trust(self):
@@ -211,7 +215,7 @@ def with_substeps(model, substeps, x0, graphs, graph_index, u, horizon, tol, max
 def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=16384, substeps=None,
              substeps_tol=stepsize.DEFAULT_TOL, max_substeps=stepsize.DEFAULT_MAX_SUBSTEPS,
              horizon_thresholds=HORIZON_THRESHOLDS, check_stability=True, warmup=0, truth=None, start="encoder",
-             invariant=None, state_names=None, ignore_attrs=False):
+             invariant=None, state_names=None, ignore_attrs=False, node_dims=None, node_names=None):
     """Roll ``model`` out on every trajectory of ``traj`` and measure error and speed (EvalResult).
 
     Predictions fall at the file's observation times.  warmup : K, the first K observations
@@ -230,6 +234,8 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
     state_names : what to call the state dimensions in the off-range entries.
     ignore_attrs : leave out node attributes and edge weights the model was not trained with
     (mpnode.model.inputs.for_model).
+    node_dims, node_names : the state dimensions each node's error is ranked by (default all) and
+    what to call the nodes (default by index): result.nodes (mpnode.evaluation.nodes).
     """
     groups = file_groups(traj, source)
     traj = for_model(model, model.fitted(traj), source, ignore_attrs)  # latent dimensions' room; attributes as controls
@@ -270,7 +276,8 @@ def evaluate(model, traj, source="data", allow_dt_mismatch=False, max_nodes=1638
                       inputs_off_range(model, x0, traj.graphs, traj.graph_index, u, traj.horizon, times, state_names),
                       None if invariant is None else invariant_drift(invariant, pred, clean), per_dim=per_dim,
                       hold_per_dim=hold_nmse_per_step_and_dim(score, spread=clean), groups=groups,
-                      scored=score, member_std=member_std, spread=spread, ensemble=figures)
+                      scored=score, member_std=member_std, spread=spread, ensemble=figures,
+                      nodes=node_errors(pred, score, clean, traj.graph_index, node_dims, node_names))
 
 
 def inputs_off_range(model, x0, graphs, graph_index, u, horizon, times=None, state_names=None):
