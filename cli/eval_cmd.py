@@ -303,7 +303,8 @@ def format_reference(ref):
                    "default: DATA's own clean truth if it keeps one (mpnode generate --noise), else its "
                    "observations.")
 @plot_option("truth against prediction for the first trajectories and nodes, per state dimension, and the "
-             "error over time with the predictable horizon")
+             "error over time with the predictable horizon; of a network of 3 nodes or more, the network coloured by "
+             "each node's error and the worst and the median node over time")
 @substeps_options
 def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, ignore_attrs, reference_sample, warmup, start,
              truth, plot, substeps, substeps_tol, max_substeps):

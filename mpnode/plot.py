@@ -3,7 +3,8 @@
 Three figures a person would put in a report, each from what the library already returns:
 `plot_eval` (truth against prediction per state dimension for a few trajectories and nodes,
 and the error over time with the predictable horizon marked: the MP-NODE paper's Fig. 2 in
-spirit) from `mpnode.evaluation.evaluate.evaluate`'s EvalResult; `plot_simulation` (a few nodes per
+spirit; for a network, also the network coloured by each node's error and its worst and median
+node over time) from `mpnode.evaluation.evaluate.evaluate`'s EvalResult; `plot_simulation` (a few nodes per
 state dimension) from any rollout; `plot_training` (losses, validation normalised MSE and
 learning rate per epoch) from the training log.  They know no particular system: state dimensions are named by
 the file's ``state_names`` attribute when it has one, x[0], x[1], ... otherwise, and time
@@ -29,6 +30,11 @@ BAND_90 = 1.6448536269514722
 INSTALL_HINT = "matplotlib installed: pip install 'mpnode[plot]' (from a checkout: pip install '.[plot]')"
 #: 1200 x 800 pixels: legible at 100 % on a screen and in a report
 FIGSIZE, DPI = (12, 8), 100
+#: the evaluation of a network of at least NETWORK_NODES nodes gets a row more (1200 x 1200 pixels):
+#: the network coloured by each node's error, the worst and the median node over time
+NETWORK_NODES, NETWORK_FIGSIZE = 3, (12, 12)
+#: networks up to this many nodes are laid out by Kamada-Kawai (seconds for 300), larger ones by springs
+KAMADA_KAWAI_NODES = 300
 STYLE = {"font.size": 11, "axes.titlesize": 12, "axes.labelsize": 11, "legend.fontsize": 10,
          "xtick.labelsize": 10, "ytick.labelsize": 10, "figure.titlesize": 13, "axes.grid": True,
          "grid.alpha": 0.3}
@@ -202,7 +208,11 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
     the normalised MSE per step (mean over trajectories, as `mpnode eval` reports it; the
     median and 10-90 % of the trajectories' own), the horizon thresholds and where the median
     trajectory first exceeds each, the first blow-up, and the drift of a conserved quantity when
-    the evaluation measured one.  Returns the Figure; writes ``out``.
+    the evaluation measured one.  Of a network of NETWORK_NODES nodes or more, a row below
+    (mpnode.evaluation.nodes: the graph most trajectories run on): the network laid out
+    (`network_layout`), each node coloured by its error on the watched dimensions, and the worst
+    and the median node's watched dimension over its first three trajectories, truth beside
+    prediction.  Returns the Figure; writes ``out``.
     """
     x = np.asarray(truth.x, dtype=np.float64)
     pred = np.asarray(result.predictions, dtype=np.float64)
@@ -211,8 +221,11 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
     as_lines = truth.complete and truth.truth is None  # else: the observations as dots, the truth (if any) as lines
     clean = x if as_lines else (None if truth.truth is None else np.asarray(truth.truth, dtype=np.float64))
     times = None if truth.regular else truth.times()
-    fig = _figure()
-    spec = fig.add_gridspec(len(ds), len(bs) + 1, width_ratios=[1] * len(bs) + [1.3])
+    nodes = getattr(result, "nodes", None)
+    network = nodes is not None and x.shape[2] >= NETWORK_NODES
+    fig = _figure(NETWORK_FIGSIZE if network else FIGSIZE)
+    outer = fig.add_gridspec(2 if network else 1, 1, height_ratios=[2, 1] if network else [1])
+    spec = outer[0].subgridspec(len(ds), len(bs) + 1, width_ratios=[1] * len(bs) + [1.3])
     spread = getattr(result, "spread", None)
     axes = _state_grid(fig, spec, pred, truth.dt, names, bs, ns, ds, truth=clean, times=times,
                        dots=None if as_lines else x, spread=spread)
@@ -223,11 +236,107 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
         if d in ds:
             axes[list(ds).index(d), 0].set_ylabel(f"{names[d]}\n(never measured: the model's hidden state)")
     _error_panel(fig.add_subplot(spec[:, -1]), scored, pred, truth.dt, result, times)
+    if network:
+        _network_row(fig, outer[1], truth, clean, pred, nodes, names, times)
     head = title or f"{truth.system}: prediction against {'truth' if clean is not None else 'observations'}"
     first = max(1, result.warmup)
     fig.suptitle(f"{head}: normalised MSE {result.nmse:.3g} (mean over steps {first}..{x.shape[1] - 1})"
                  f"{_shown(names, ds, x.shape[3])}")
     return _finish(fig, out)
+
+
+def _network_row(fig, spec, truth, clean, pred, nodes, names, times):
+    """The network coloured by each node's error (mpnode.evaluation.nodes.NodeErrors), beside the worst
+    and the median node's watched dimension over the first trajectories on that network."""
+    row = spec.subgridspec(1, 3, width_ratios=[1.3, 1, 1])
+    graph = truth.graphs[nodes.graph]
+    dims = [d for d in nodes.dims if d < len(names)]  # a model's latent dimensions have no truth to draw
+    what = "the whole state" if len(dims) == len(names) else ", ".join(names[d] for d in dims)
+    _network_panel(fig, fig.add_subplot(row[0, 0]), graph, nodes, what)
+    observed = np.asarray(truth.x, dtype=np.float64)
+    rows = nodes.trajectories[:3]
+    first = None
+    for k, (label, i) in enumerate((("worst", (nodes.worst(1) or [None])[0]), ("median", nodes.median()))):
+        ax = fig.add_subplot(row[0, k + 1], sharex=first)
+        first = first or ax
+        if i is None:
+            ax.set_axis_off()
+            continue
+        d = max(dims, key=lambda d: np.nan_to_num(nodes.nmse[i, d], nan=-1.0))  # its worst watched one
+        for c, b in enumerate(rows):
+            t = np.arange(observed.shape[1]) * float(truth.dt) if times is None else times[b]
+            reference = observed[b, :, i, d] if clean is None else clean[b, :, i, d]
+            ax.plot(t, reference, color=f"C{c}", lw=1.8, ls="-" if clean is not None else "none",
+                    marker=None if clean is not None else "o", ms=3)
+            with np.errstate(invalid="ignore"):
+                ax.plot(t, np.where(np.isfinite(pred[b, :, i, d]), pred[b, :, i, d], np.nan), color=f"C{c}",
+                        lw=1.8, ls="--")
+        reference = observed if clean is None else clean
+        if np.isfinite(reference[rows][:, :, i, d]).any():
+            ax.set_ylim(*_limits(reference[rows][:, :, i, d], pred[rows][:, :, i, d]))
+        ax.set_title(f"{label}: {nodes.name(i)}, nMSE {nodes.error[i]:.3g}")
+        ax.set_ylabel(names[d])
+        ax.set_xlabel(time_label(truth.dt))
+    _trajectory_legend(first, rows, clean is not None)
+
+
+def _trajectory_legend(ax, rows, with_truth):
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color=f"C{c}", lw=2, label=f"trajectory {b}") for c, b in enumerate(rows)]
+    handles += [Line2D([], [], color="0.25", lw=1.8, label="truth" if with_truth else "observations",
+                       ls="-" if with_truth else "none", marker=None if with_truth else "o"),
+                Line2D([], [], color="0.25", lw=1.8, ls="--", label="prediction")]
+    ax.legend(handles=handles, loc="best", fontsize=9, framealpha=0.85)
+
+
+def network_layout(graph, seed=0):
+    """(N, 2) node positions of ``graph`` (its edges undirected): Kamada-Kawai up to KAMADA_KAWAI_NODES
+    nodes, springs (seeded) beyond; the same graph always gets the same drawing."""
+    import networkx as nx
+
+    g = nx.Graph()
+    g.add_nodes_from(range(graph.n_nodes))
+    g.add_edges_from((int(i), int(j)) for i, j in graph.edges() if i != j)
+    pos = (nx.kamada_kawai_layout(g) if graph.n_nodes <= KAMADA_KAWAI_NODES and nx.is_connected(g)
+           else nx.spring_layout(g, seed=seed))
+    return np.array([pos[i] for i in range(graph.n_nodes)])
+
+
+def _network_panel(fig, ax, graph, nodes, what):
+    """The graph's nodes coloured by their error (a log scale when it spans more than a decade), the
+    worst three and the median named; a node whose prediction became non-finite black, one never
+    scored grey."""
+    from matplotlib import colormaps, colors, ticker
+    from matplotlib.collections import LineCollection
+
+    pos = network_layout(graph)
+    pairs = graph.edges()
+    ax.add_collection(LineCollection(pos[pairs[pairs[:, 0] < pairs[:, 1]]], colors="0.6", linewidths=0.8, zorder=1))
+    error = nodes.error
+    finite = error[np.isfinite(error) & (error > 0)]
+    lo, hi = (finite.min(), finite.max()) if finite.size else (1e-3, 1.0)
+    norm = colors.LogNorm(lo, max(hi, lo * 1.01)) if hi > 10 * lo else colors.Normalize(0, max(hi, 1e-12))
+    shown = np.where(error > 0, error, lo)  # an exact node on a log scale: its lowest colour
+    shown[np.isnan(error)] = np.nan
+    size = float(np.clip(4000 / graph.n_nodes, 12, 160))
+    sc = ax.scatter(pos[:, 0], pos[:, 1], c=shown, s=size, norm=norm, edgecolors="0.2", linewidths=0.5, zorder=2,
+                    cmap=colormaps["YlOrRd"].with_extremes(over="k", bad="0.85"), plotnonfinite=True)
+    bar = fig.colorbar(sc, ax=ax, location="bottom", shrink=0.8, extend="max" if np.isinf(error).any() else "neither",
+                       label=f"nMSE of {what}")
+    if isinstance(norm, colors.LogNorm):  # plain numbers at 1, 2, 5 of each decade
+        plain = ticker.FuncFormatter(lambda v, _: f"{v:g}")
+        bar.ax.xaxis.set_major_formatter(plain)
+        bar.ax.xaxis.set_minor_locator(ticker.LogLocator(subs=(2, 5)))
+        bar.ax.xaxis.set_minor_formatter(plain)
+    median = nodes.median()
+    for i in nodes.worst(3) + ([median] if median is not None and median not in nodes.worst(3) else []):
+        ax.annotate(nodes.name(i) + (" (median)" if i == median else ""), pos[i], xytext=(4, 4),
+                    textcoords="offset points", fontsize=9, zorder=3)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_axis_off()
+    k = len(nodes.trajectories)
+    ax.set_title(f"graph {nodes.graph}, {k} trajector{'y' if k == 1 else 'ies'}: error per node")
 
 
 def _error_panel(ax, x, pred, dt, result, times=None):

@@ -1,5 +1,5 @@
 """Where on the network the error lies: each node's error (mpnode.evaluation.nodes), `mpnode eval`'s
-report and JSON of it (a grid's frequency per bus)."""
+report and JSON of it (a grid's frequency per bus), and the network in `eval --plot`."""
 import json
 import math
 
@@ -108,3 +108,24 @@ def test_eval_reports_the_frequency_error_per_bus_and_the_reference(ieee14):
     assert f"median {v['median']['name']} (node {v['median']['node']})" in res.output
     assert "    worst: bus " in res.output and "speed against error: learned" in res.output
 
+
+def test_eval_plot_draws_the_grid_and_its_worst_and_median_bus(ieee14, tmp_path):
+    pytest.importorskip("matplotlib", reason="the figures need matplotlib (the plot extra)")
+    from mpnode.data import read_trajectories
+    from mpnode.plot import plot_eval
+
+    res = CliRunner().invoke(main, ["eval", str(ieee14 / "m.h5"), str(ieee14 / "d.h5"), "--ignore-attrs",
+                                    "--reference-sample", "0", "--plot", str(tmp_path / "e.png")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "e.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    traj = read_trajectories(ieee14 / "d.h5")
+    r = evaluate(Model.load(ieee14 / "m.h5"), traj, ignore_attrs=True, node_dims=[2],
+                 node_names=[f"bus {i}" for i in range(1, 15)])
+    fig = plot_eval(traj, r)
+    assert tuple(fig.get_size_inches() * fig.dpi) == (1200, 1200)
+    words = {t.get_text() for t in fig.findobj(lambda a: hasattr(a, "get_text")) if t.get_text()}
+    worst, median = r.nodes.worst(1)[0], r.nodes.median()
+    assert f"worst: bus {worst + 1}, nMSE {r.nodes.error[worst]:.3g}" in words
+    assert f"median: bus {median + 1}, nMSE {r.nodes.error[median]:.3g}" in words
+    assert {"graph 0, 3 trajectories: error per node", "nMSE of frequency deviation (rad/s)"} <= words
+    assert len(fig.axes) == 3 * 2 + 1 + 3 + 1  # dims x 2 trajectories + error; network, worst, median; colourbar
