@@ -215,7 +215,7 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
     prediction.  Returns the Figure; writes ``out``.
     """
     x = np.asarray(truth.x, dtype=np.float64)
-    pred = np.asarray(result.predictions, dtype=np.float64)
+    pred = np.asarray(result.predictions, dtype=np.float64)[..., :x.shape[3]]  # a model's latent dimensions: no truth
     bs, ns, ds = _selection(x.shape, trajectories, nodes, dims)
     names = dimension_names(truth.attrs, x.shape[3])
     as_lines = truth.complete and truth.truth is None  # else: the observations as dots, the truth (if any) as lines

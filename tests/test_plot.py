@@ -160,6 +160,18 @@ def test_eval_figure_shows_names_time_units_and_the_horizon(tmp_path, tiny_linea
     assert png_size(tmp_path / "b.png") == (1200, 800)
 
 
+def test_a_model_with_latent_dimensions_gets_its_eval_figure(tiny_linear):
+    pytest.importorskip("matplotlib")
+    from mpnode.evaluation.evaluate import evaluate
+    from mpnode.plot import plot_eval
+
+    traj = tiny_linear(B=3)
+    result = evaluate(Model.create(2, 0, message_dim=3, hidden=8, dt=0.1, latent_dims=1), traj)
+    assert result.predictions.shape[-1] == 3  # the data's two dimensions and the model's own
+    words = texts(plot_eval(traj, result))
+    assert "x[1]" in words and "x[2]" not in words
+
+
 def test_simulation_figure_defaults_to_numbered_dimensions(tmp_path):
     pytest.importorskip("matplotlib")
     from mpnode.plot import plot_simulation
