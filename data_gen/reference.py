@@ -8,8 +8,9 @@ setting up, stopping at the first that reaches the model's normalised MSE:
 * the file's own scipy integrator at looser tolerances, rtol = atol = 1e-3, 1e-4, ...,
   down to the file's own (which rebuilds the file), one trajectory per call;
 * classic RK4 of the true equations with 1, 2, 4, ... steps per dt, all the sampled
-  trajectories of a graph as one batch (the right-hand sides take states as columns:
-  data_gen.systems), which is how a fast reference would be written.
+  trajectories of a network (a graph, and its nodes' attributes when they differ: the
+  disturbances of one IEEE case share theirs) as one batch (the right-hand sides take states
+  as columns: data_gen.systems), which is how a fast reference would be written.
 
 The faster of the two wins.  The search stops early once it has spent SEARCH_SECONDS, so
 `mpnode eval` stays affordable; what it tried is reported.
@@ -55,8 +56,8 @@ def rk4_columns(rhs, y0, n_steps, dt, steps):
 
 
 class _Sample:
-    """The first k trajectories of a file and the true right-hand side of each of its graphs (of each
-    trajectory, when its nodes differ: the batched RK4 then runs one trajectory per batch)."""
+    """The first k trajectories of a file and the true right-hand side of each network they run on
+    (`networks`): the batched RK4 runs the trajectories of one network as one batch."""
 
     def __init__(self, traj, k):
         self.system = SYSTEMS[traj.system]
@@ -65,7 +66,7 @@ class _Sample:
         if traj.node_attrs is None:
             self.rhs, self.gi = file_rhs(traj), np.asarray(traj.graph_index[:k])
         else:
-            self.rhs, self.gi = [trajectory_rhs(traj, b) for b in range(k)], np.arange(k)
+            self.rhs, self.gi = networks(traj, k)
         self.method = str(traj.attrs.get("integrator", "DOP853"))
         self.rtol, self.atol = float(traj.attrs.get("rtol", 1e-9)), float(traj.attrs.get("atol", 1e-9))
 
@@ -104,6 +105,21 @@ class _Sample:
         rk4 = [("rk4", f"batched RK4, {s} step{'s' if s > 1 else ''} per dt", lambda s=s: self.rk4(s))
                for s in RK4_STEPS]
         return scipy, rk4
+
+
+def networks(traj, k):
+    """(the right-hand side of each network, (k,) the network of each of the first k trajectories) of a
+    file whose nodes differ: trajectories on one graph with the same node attributes (an IEEE case's
+    disturbances of one grid) are one network, whose batched RK4 runs them as one batch."""
+    attrs = np.asarray(traj.node_attrs)[:k]
+    index, rhs, gi = {}, [], np.empty(k, dtype=np.int64)
+    for b in range(k):
+        key = (int(traj.graph_index[b]), attrs[b].tobytes())
+        if key not in index:
+            index[key] = len(rhs)
+            rhs.append(trajectory_rhs(traj, b))
+        gi[b] = index[key]
+    return rhs, gi
 
 
 def _timed(run):
