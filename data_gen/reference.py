@@ -8,9 +8,10 @@ setting up, stopping at the first that reaches the model's normalised MSE:
 * the file's own scipy integrator at looser tolerances, rtol = atol = 1e-3, 1e-4, ...,
   down to the file's own (which rebuilds the file), one trajectory per call;
 * classic RK4 of the true equations with 1, 2, 4, ... steps per dt, all the sampled
-  trajectories of a network (a graph, and its nodes' attributes when they differ: the
-  disturbances of one IEEE case share theirs) as one batch (the right-hand sides take states
-  as columns: data_gen.systems), which is how a fast reference would be written.
+  trajectories of a graph as one batch (the right-hand sides take states as columns:
+  data_gen.systems); of a system whose nodes differ, all of them side by side as one network
+  (their graphs block-diagonal, as the learned model batches them: data_gen.systems.union_rhs),
+  which is how a fast reference would be written.
 
 The faster of the two wins.  The search stops early once it has spent SEARCH_SECONDS, so
 `mpnode eval` stays affordable; what it tried is reported.
@@ -24,7 +25,7 @@ from mpnode.base.errors import NumericalError
 from mpnode.evaluation.metrics import nmse
 
 from .simulate import integrate
-from .systems import SYSTEMS, file_rhs, trajectory_rhs
+from .systems import SYSTEMS, file_rhs, trajectory_rhs, union_rhs
 
 #: the loosest tolerance tried first; each next is ten times tighter, down to the file's own
 LOOSEST_TOL = 1e-3
@@ -56,17 +57,19 @@ def rk4_columns(rhs, y0, n_steps, dt, steps):
 
 
 class _Sample:
-    """The first k trajectories of a file and the true right-hand side of each network they run on
-    (`networks`): the batched RK4 runs the trajectories of one network as one batch."""
+    """The first k trajectories of a file and the true right-hand side of each of its graphs (of each
+    trajectory, when its nodes differ; the batched RK4 then runs them side by side as one network)."""
 
     def __init__(self, traj, k):
         self.system = SYSTEMS[traj.system]
         self.k, self.horizon, self.dt = k, traj.horizon, float(traj.dt)
         self.x = np.asarray(traj.x, dtype=np.float64)
+        self.union = None
         if traj.node_attrs is None:
             self.rhs, self.gi = file_rhs(traj), np.asarray(traj.graph_index[:k])
         else:
-            self.rhs, self.gi = networks(traj, k)
+            self.rhs, self.gi = [trajectory_rhs(traj, b) for b in range(k)], np.arange(k)
+            self.union = union_rhs(traj, k)
         self.method = str(traj.attrs.get("integrator", "DOP853"))
         self.rtol, self.atol = float(traj.attrs.get("rtol", 1e-9)), float(traj.attrs.get("atol", 1e-9))
 
@@ -84,6 +87,9 @@ class _Sample:
         return out
 
     def rk4(self, steps):
+        if self.union is not None:  # one state vector: trajectory 0's nodes, then 1's, ...
+            ys = rk4_columns(self.union, self.x[:self.k, 0].reshape(-1, 1), self.horizon, self.dt, steps)
+            return ys[..., 0].reshape((self.horizon + 1, self.k) + self.x.shape[2:]).swapaxes(0, 1)
         out = np.empty((self.k,) + self.x.shape[1:])
         for g in np.unique(self.gi):
             idx = np.flatnonzero(self.gi == g)
@@ -105,21 +111,6 @@ class _Sample:
         rk4 = [("rk4", f"batched RK4, {s} step{'s' if s > 1 else ''} per dt", lambda s=s: self.rk4(s))
                for s in RK4_STEPS]
         return scipy, rk4
-
-
-def networks(traj, k):
-    """(the right-hand side of each network, (k,) the network of each of the first k trajectories) of a
-    file whose nodes differ: trajectories on one graph with the same node attributes (an IEEE case's
-    disturbances of one grid) are one network, whose batched RK4 runs them as one batch."""
-    attrs = np.asarray(traj.node_attrs)[:k]
-    index, rhs, gi = {}, [], np.empty(k, dtype=np.int64)
-    for b in range(k):
-        key = (int(traj.graph_index[b]), attrs[b].tobytes())
-        if key not in index:
-            index[key] = len(rhs)
-            rhs.append(trajectory_rhs(traj, b))
-        gi[b] = index[key]
-    return rhs, gi
 
 
 def _timed(run):

@@ -16,7 +16,7 @@ import numpy as np
 import scipy.sparse
 
 from mpnode.base.errors import InputError
-from mpnode.base.graph import Graph
+from mpnode.base.graph import Graph, block_diagonal
 
 from . import forced_pendulum, quadrotor, swing
 from .grids import bus_names
@@ -454,10 +454,24 @@ def trajectory_rhs(traj, b):
     Raises ValueError when the file's attribute names are not its system's (the rhs reads them
     by position), KeyError/TypeError as file_rhs.
     """
-    attrs = traj.node_attrs
-    if attrs is None:
+    if traj.node_attrs is None:
         return make_rhs(traj.system, {**traj.attrs, **traj.params}, traj.graph_of(b))
+    return make_rhs(traj.system, {**traj.attrs, **traj.params}, traj.graph_of(b), _node_attrs(traj)[b])
+
+
+def union_rhs(traj, k):
+    """f(t, y) of the first k trajectories of a file whose nodes differ, side by side as one network:
+    their graphs block-diagonal, their node attributes stacked; y holds trajectory 0's nodes, then
+    trajectory 1's, ...  (every such system's nodes hear only their neighbours, so the networks stay
+    apart).  Raises as trajectory_rhs."""
+    graph = block_diagonal([traj.graph_of(b) for b in range(k)])
+    return make_rhs(traj.system, {**traj.attrs, **traj.params}, graph, np.concatenate(_node_attrs(traj)[:k]))
+
+
+def _node_attrs(traj):
+    """The file's node attributes (B, N, dp); ValueError unless they are its system's, by name (an rhs
+    reads them by position)."""
     expected = list(get_system(traj.system).attr_names)
     if list(traj.attr_names or ()) != expected:
         raise ValueError(f"{traj.system}: node attributes {traj.attr_names}, expected {expected}")
-    return make_rhs(traj.system, {**traj.attrs, **traj.params}, traj.graph_of(b), attrs[b])
+    return np.asarray(traj.node_attrs)

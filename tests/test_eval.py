@@ -175,6 +175,23 @@ def test_the_reference_at_the_files_own_setting_rebuilds_the_file():
     assert all(t["nmse"] > 0 for t in ref["tried"] if t["family"] == "rk4")  # RK4 of any step is not exact
 
 
+@pytest.mark.parametrize("scene", ["grid10", "ieee14", "kuramoto_het10", "spring_pendulums_het4"])
+def test_the_reference_runs_networks_whose_nodes_differ_side_by_side_as_one_batch(scene):
+    if scene.startswith("ieee"):
+        pytest.importorskip("pypower", reason="the IEEE cases need PYPOWER (the grids extra)")
+    from dataclasses import replace
+
+    from data_gen import generate, load_scene
+    from data_gen.reference import _Sample, rk4_columns
+    from data_gen.systems import trajectory_rhs
+
+    traj = generate(replace(load_scene(scene), trajectories=3, horizon=10), workers=1)
+    batched = _Sample(traj, 3).rk4(2)  # a graph per trajectory, or one grid's buses: as one network
+    for b in range(3):  # as each trajectory alone
+        alone = rk4_columns(trajectory_rhs(traj, b), traj.x[b, 0].reshape(-1, 1), traj.horizon, traj.dt, 2)
+        np.testing.assert_allclose(batched[b], alone[..., 0].reshape(traj.x.shape[1:]), rtol=1e-12, atol=1e-12)
+
+
 def test_eval_holds_the_model_against_holding_the_initial_state_per_state_group(tmp_path, tiny_linear, fresh):
     m = fresh()
     traj = tiny_linear(B=5)

@@ -130,18 +130,3 @@ def test_eval_plot_draws_the_grid_and_its_worst_and_median_bus(ieee14, tmp_path)
     assert {"graph 0, 3 trajectories: error per node", "nMSE of frequency deviation (rad/s)"} <= words
     assert len(fig.axes) == 3 * 2 + 1 + 3 + 1  # dims x 2 trajectories + error; network, worst, median; colourbar
 
-
-def test_the_reference_runs_the_disturbances_of_one_grid_as_one_batch(ieee14):
-    from data_gen.reference import _Sample, networks, rk4_columns
-    from data_gen.systems import trajectory_rhs
-    from mpnode.data import read_trajectories
-
-    traj = read_trajectories(ieee14 / "d.h5")
-    assert list(networks(traj, 3)[1]) == [0, 0, 0]  # one grid, the same buses: one network
-    batched = _Sample(traj, 3).rk4(2)
-    for b in range(3):  # as each trajectory alone
-        alone = rk4_columns(trajectory_rhs(traj, b), traj.x[b, 0].reshape(-1, 1), traj.horizon, traj.dt, 2)
-        np.testing.assert_allclose(batched[b], alone[..., 0].reshape(traj.x.shape[1:]), rtol=1e-12, atol=1e-12)
-    traj.node_attrs = np.array(traj.node_attrs)
-    traj.node_attrs[1, 0, 0] *= 2  # another inertia at bus 1: another network
-    assert list(networks(traj, 3)[1]) == [0, 1, 0]
