@@ -382,7 +382,13 @@ def eval_cmd(model_file, data, predictions, as_json, allow_dt_mismatch, ignore_a
     report["model"] = model_file
     report["warnings"] = ([warning] if warning else []) + warn_off_range(report["off_range"])
     click.echo(json.dumps(report, indent=2, allow_nan=False) if as_json else format_report(report, model_file))
-    if plot:  # before the predictions file, which refuses non-finite predictions: a blow-up gets its figure
+    _write_eval_outputs(result, traj, data, model_file, plot, predictions, as_json)
+
+
+def _write_eval_outputs(result, traj, data, model_file, plot, predictions, as_json):
+    """`eval`'s figure, then its predictions file (which refuses non-finite predictions: a blow-up
+    gets its figure first); each named once written unless the output is JSON."""
+    if plot:
         from mpnode.plot import plot_eval
 
         plot_eval(traj, result, plot, title=f"{os.path.basename(model_file)} on {os.path.basename(data)}")
