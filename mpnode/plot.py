@@ -224,7 +224,7 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
     nodes = getattr(result, "nodes", None)
     network = nodes is not None and x.shape[2] >= NETWORK_NODES
     fig = _figure(NETWORK_FIGSIZE if network else FIGSIZE)
-    outer = fig.add_gridspec(2 if network else 1, 1, height_ratios=[2, 1] if network else [1])
+    outer = fig.add_gridspec(2 if network else 1, 1, height_ratios=[1.8, 1.2] if network else [1])
     spec = outer[0].subgridspec(len(ds), len(bs) + 1, width_ratios=[1] * len(bs) + [1.3])
     spread = getattr(result, "spread", None)
     axes = _state_grid(fig, spec, pred, truth.dt, names, bs, ns, ds, truth=clean, times=times,
@@ -248,7 +248,7 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
 def _network_row(fig, spec, truth, clean, pred, nodes, names, times):
     """The network coloured by each node's error (mpnode.evaluation.nodes.NodeErrors), beside the worst
     and the median node's watched dimension over the first trajectories on that network."""
-    row = spec.subgridspec(1, 3, width_ratios=[1.3, 1, 1])
+    row = spec.subgridspec(1, 3, width_ratios=[1.5, 1, 1])
     graph = truth.graphs[nodes.graph]
     dims = [d for d in nodes.dims if d < len(names)]  # a model's latent dimensions have no truth to draw
     what = "the whole state" if len(dims) == len(names) else ", ".join(names[d] for d in dims)

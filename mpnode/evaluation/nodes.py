@@ -72,7 +72,11 @@ class NodeErrors:
         return {"node": int(i), "name": self.name(i), "nmse": _num(self.error[i]), "rmse": _num(self.rms[i])}
 
     def summary(self, n_trajectories):
-        """The evaluation summary's ``per_node`` entry (module docstring; inf/NaN as strings)."""
+        """The evaluation summary's ``per_node`` entry (inf/NaN as strings): graph, trajectories (on
+        it), all_trajectories (bool), dims (watched), names (or None), nmse and rmse (per node, over
+        the watched dimensions), nmse_per_dim and rmse_per_dim (N x dx), worst (the WORST nodes of
+        largest nmse, largest first) and median (the node of the lower median nmse), each
+        {node, name, nmse, rmse}."""
         median = self.median()
         return {"graph": self.graph, "trajectories": int(len(self.trajectories)),
                 "all_trajectories": len(self.trajectories) == n_trajectories, "dims": list(self.dims),
