@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .metrics import _mean, normalised_sq_error
+from .metrics import _mean, normalised_sq_error, variance
 
 #: how many of the worst nodes the summary names
 WORST = 5
@@ -102,13 +102,11 @@ def node_errors(pred, scored, clean, graph_index, dims=None, names=None):
     error).  dims : the watched dimensions (None or empty: all);  names : one per node, or None."""
     g, rows = busiest_graph(graph_index)
     p, s = np.asarray(pred)[rows, 1:], scored[rows, 1:]
-    dx = s.shape[-1]
-    nmse = _mean(normalised_sq_error(p, s, clean), axis=(0, 1))
-    rmse = np.sqrt(_mean(normalised_sq_error(p, s, var=np.ones(dx)), axis=(0, 1)))
-    dims = [int(d) for d in dims] if dims else list(range(dx))
+    mse = _mean(normalised_sq_error(p, s, var=np.ones(s.shape[-1])), axis=(0, 1))  # (N, dx), data units
+    dims = [int(d) for d in dims] if dims else list(range(s.shape[-1]))
     if names is not None and len(names) != s.shape[2]:
         names = None  # names of another network's nodes: by index instead
-    return NodeErrors(g, rows, nmse, rmse, dims, None if names is None else list(names))
+    return NodeErrors(g, rows, mse / variance(clean), np.sqrt(mse), dims, None if names is None else list(names))
 
 
 def _num(v):
