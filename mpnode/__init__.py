@@ -15,6 +15,7 @@ _LAZY = {
     "Model": "mpnode.model.model",
     "Ensemble": "mpnode.model.ensemble",
     "Simulator": "mpnode.model.simulator",
+    "fit_network": "mpnode.evaluation.network_fit",
     "loss_and_grad": "mpnode.training.losses",
     "Trajectories": "mpnode.data.trajectories",
     "read_trajectories": "mpnode.data.files",

@@ -1,0 +1,111 @@
+"""fit_network: the loss's gradient is exact, and a fit through the model that made the data names
+the node (line) that was changed."""
+import numpy as np
+import pytest
+
+import mpnode
+from mpnode.base.errors import InputError
+from mpnode.base.graph import Graph
+from mpnode.data import Trajectories
+from mpnode.evaluation.network_fit import _AttrParameters, _Problem, _WeightParameters, lines_of
+from mpnode.model import Model
+from mpnode.model.config import ModelConfig
+from network_helpers import ring
+
+N, B, T = 6, 8, 12
+
+
+def chorded_ring(weights=None):
+    """A ring of N nodes with one chord, undirected: 7 lines, 14 edges."""
+    g = Graph.from_edges(N, [(i, (i + 1) % N) for i in range(N)] + [(0, 3)])
+    return g if weights is None else g.reweighted(weights)
+
+
+def model(seed=2, weighted=True):
+    return Model.create(1, 0, dt=0.1, message_dim=2, hidden=8, seed=seed, attr_names=["rate", "size"],
+                        weight_scale=1.5 if weighted else None, config=ModelConfig(dtype="float64"))
+
+
+def nominal():
+    rng = np.random.default_rng(0)
+    attrs = np.stack([rng.uniform(0.5, 2.0, N), rng.uniform(1.0, 3.0, N)], axis=1)
+    line_of, lines = lines_of(chorded_ring())
+    w = rng.uniform(0.5, 2.5, len(lines))[line_of]
+    return attrs, chorded_ring(w)
+
+
+def made_by(m, attrs, graph, seed=1):
+    """B trajectories the model itself makes on ``graph`` with node attributes ``attrs``."""
+    x0 = np.random.default_rng(seed).uniform(-1, 1, (B, N, 1))
+    x = m.rollout(x0, graph, steps=T, node_attrs=attrs)
+    return Trajectories.from_arrays(x, graph, dt=0.1, system="made", node_attrs=attrs, attr_names=m.attr_names)
+
+
+def test_lines_tie_an_edge_and_its_reverse_of_equal_weight():
+    line_of, lines = lines_of(chorded_ring(np.ones(14)))
+    assert len(lines) == 7 and np.all(np.bincount(line_of) == 2) and np.all(lines[:, 0] < lines[:, 1])
+    g = Graph.from_edges(3, [(1, 0), (0, 1), (2, 1)], directed=True, weights=[1.0, 2.0, 1.0])
+    line_of, lines = lines_of(g)  # unequal weights both ways, and a one-way edge: a line each
+    assert len(lines) == 3 and sorted(map(tuple, lines)) == [(0, 1), (1, 0), (2, 1)]
+
+
+@pytest.mark.parametrize("what", ["node_attrs", "edge_weights"])
+def test_the_loss_gradient_matches_central_differences(what):
+    m = model()
+    attrs, graph = nominal()
+    rng = np.random.default_rng(4)
+    data = made_by(m, attrs * rng.uniform(0.7, 1.3, attrs.shape), graph.reweighted(graph.weights * 1.2))
+    problem = _Problem(m, data, attrs, graph)
+    params = _AttrParameters(problem, None) if what == "node_attrs" else _WeightParameters(problem)
+    p = params.p0 * rng.uniform(0.8, 1.2, params.p0.shape)
+    value, grad = params.loss(p)
+    assert value > 0 and grad.shape == p.shape
+    for k in range(len(p)):
+        e = np.zeros_like(p)
+        e[k] = 1e-6 * params.scale[k]
+        fd = (params.loss(p + e)[0] - params.loss(p - e)[0]) / (2 * e[k])
+        assert abs(fd - grad[k]) <= 1e-6 * max(np.abs(grad).max(), 1e-8), (k, fd, grad[k])
+
+
+def test_a_fit_names_the_node_whose_attribute_changed():
+    m = model()
+    attrs, graph = nominal()
+    changed = attrs.copy()
+    changed[4, 0] *= 0.5
+    fit = mpnode.fit_network(m, made_by(m, changed, graph), "node_attrs", attrs=["rate"], node_attrs=attrs)
+    assert fit.ranking[0] == 4, fit.describe()
+    assert fit.fitted[4, 0] == pytest.approx(changed[4, 0], rel=1e-3)
+    np.testing.assert_array_equal(fit.fitted[:, 1], attrs[:, 1])  # the column not fitted stays nominal
+    assert fit.loss < 1e-6 * fit.loss_nominal and fit.departure.shape == (N,) and fit.change.shape == (N, 1)
+    assert fit.describe(1)[0].startswith("node 4: rate")
+
+
+def test_a_fit_names_the_line_taken_out():
+    m = model()
+    attrs, graph = nominal()
+    line_of, lines = lines_of(graph)
+    out = int(np.flatnonzero((lines == [2, 3]).all(axis=1))[0])
+    weights = graph.weights.copy()
+    weights[line_of == out] = 0.0
+    data = made_by(m, attrs, graph.reweighted(weights))
+    fit = mpnode.fit_network(m, data, "edge_weights", graph=graph)
+    assert fit.ranking[0] == out and tuple(fit.lines[out]) == (2, 3), fit.describe()
+    assert fit.fitted[line_of == out] == pytest.approx(0.0, abs=1e-3 * graph.weights.max())
+    assert fit.departure[out] == pytest.approx(1.0, abs=1e-3) and fit.fitted.shape == (graph.n_edges,)
+    assert fit.to_dict()["ranking"][0] == out
+
+
+def test_what_cannot_be_fitted_is_refused():
+    m = model(weighted=False)
+    attrs, graph = nominal()
+    data = made_by(m, attrs, ring(N))
+    with pytest.raises(InputError, match="what"):
+        mpnode.fit_network(m, data, "lines")
+    with pytest.raises(InputError, match="does not hear edge weights"):
+        mpnode.fit_network(m, data, "edge_weights")
+    with pytest.raises(InputError, match="attrs.*distinct names among rate, size"):
+        mpnode.fit_network(m, data, attrs=["inertia"])
+    with pytest.raises(InputError, match="bounds"):
+        mpnode.fit_network(m, data, attrs="rate", bounds=(0.0, np.ones(N + 1)))
+    with pytest.raises(InputError, match="graph.*weights"):
+        mpnode.fit_network(m, data, graph=graph)
