@@ -92,6 +92,7 @@ from . import (
     convert_cmd,  # noqa: E402,F401
     eval_cmd,  # noqa: E402,F401
     export_cmd,  # noqa: E402,F401
+    fit_cmd,  # noqa: E402,F401
     generate_cmd,  # noqa: E402,F401
     inspect_cmd,  # noqa: E402,F401
     sweep_cmd,  # noqa: E402,F401

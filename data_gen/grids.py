@@ -159,10 +159,18 @@ class GridCase:
     susceptances and its buses' attributes the same in every trajectory (nothing drawn).
 
     n_nodes : the buses kept (CASES), known without reading the case
+    inertia_factors : ((node, factor), ...): those buses' inertia M_i times factor, their damping
+        and every other bus as the rule makes them (a machine changed)
+    lines_out : ((node, node), ...): those lines out of service, the machines' inertia and damping
+        still the rule's on the whole grid (a line tripped does not change a machine)
+    Both change the case a fitted network is tested against (docs/fit-network.md); nodes are
+    indices 0..N-1 (``grid_bus_numbers`` gives each one's bus number).
     """
 
     number: int
     n_nodes: int
+    inertia_factors: tuple = ()
+    lines_out: tuple = ()
     builder = "pypower_case"
 
     def calls(self):
@@ -174,15 +182,49 @@ class GridCase:
 
     def network(self, p, source):
         """(weighted Graph, node attributes (N, 3), record) of the case under the scalar parameters
-        ``p`` (the inertia rule), refused with an InputError naming ``source`` unless it has a stable
-        synchronous state."""
+        ``p`` (the inertia rule) and the changes, refused with an InputError naming ``source`` unless
+        it has a stable synchronous state."""
         graph, power, generator, record = case_network(load_case(self.number, source), source)
         if graph.n_nodes != self.n_nodes:
             raise InputError(source, "grid", f"PYPOWER's case{self.number} gives {graph.n_nodes} buses",
                              f"{self.n_nodes} (the case as this version of mpnode knows it)")
         attrs = grid_attrs(graph, power, generator, p)
+        graph, attrs, changes = self._changed(graph, attrs, source)
+        _check_connected(graph, source)
         operating_point(graph, power, source, inertia=attrs[:, 0])
-        return graph, attrs, record
+        return graph, attrs, {**record, **changes}
+
+    def _changed(self, graph, attrs, source):
+        """The graph and attributes with ``inertia_factors`` and ``lines_out`` applied, and the
+        root attributes recording them."""
+        attrs, changes = attrs.copy(), {}
+        for node, factor in self.inertia_factors:
+            _check_node(node, graph.n_nodes, source, "inertia_factors")
+            if not (np.isfinite(factor) and factor > 0):
+                raise InputError(source, "inertia_factors", f"scales node {node}'s inertia by {factor}",
+                                 "a finite factor > 0")
+            attrs[int(node), 0] *= factor
+        if self.inertia_factors:
+            changes["grid_inertia_factors"] = np.asarray(self.inertia_factors, dtype=np.float64)
+        if self.lines_out:
+            pairs = np.asarray(self.lines_out, dtype=np.int64).reshape(-1, 2)
+            edges = graph.edges()
+            out = np.zeros(graph.n_edges, bool)
+            for i, j in pairs:
+                _check_node(i, graph.n_nodes, source, "lines_out")
+                _check_node(j, graph.n_nodes, source, "lines_out")
+                hit = ((edges[:, 0] == i) & (edges[:, 1] == j)) | ((edges[:, 0] == j) & (edges[:, 1] == i))
+                if not hit.any():
+                    raise InputError(source, "lines_out", f"names {i}-{j}, which is no line", "lines of the grid")
+                out |= hit
+            graph = Graph.from_edges(graph.n_nodes, edges[~out], directed=True, weights=graph.weights[~out])
+            changes["grid_lines_out"] = pairs
+        return graph, attrs, changes
+
+
+def _check_node(node, n, source, field):
+    if not 0 <= int(node) < n:
+        raise InputError(source, field, f"names node {node}", f"nodes 0..{n - 1}")
 
 
 def grid_ranges(graph, attrs):

@@ -1,5 +1,7 @@
 """fit_network: the loss's gradient is exact, and a fit through the model that made the data names
 the node (line) that was changed."""
+import json
+
 import numpy as np
 import pytest
 
@@ -109,3 +111,26 @@ def test_what_cannot_be_fitted_is_refused():
         mpnode.fit_network(m, data, attrs="rate", bounds=(0.0, np.ones(N + 1)))
     with pytest.raises(InputError, match="graph.*weights"):
         mpnode.fit_network(m, data, graph=graph)
+
+
+def test_the_command_prints_the_ranking_and_writes_the_fit(tmp_path):
+    from click.testing import CliRunner
+
+    from cli.main import main
+    from mpnode.data import write_trajectories
+
+    m = model()
+    attrs, graph = nominal()
+    changed = attrs.copy()
+    changed[2, 1] *= 2.0
+    m.save(tmp_path / "m.h5")
+    write_trajectories(tmp_path / "nominal.h5", made_by(m, attrs, graph))
+    write_trajectories(tmp_path / "changed.h5", made_by(m, changed, graph))
+    args = ["fit-network", str(tmp_path / "m.h5"), str(tmp_path / "changed.h5"), "--nominal",
+            str(tmp_path / "nominal.h5"), "--attrs", "size", "-o", str(tmp_path / "fit.json")]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert "most departed first:\n  node 2: size" in r.output
+    assert json.loads((tmp_path / "fit.json").read_text())["ranking"][0] == 2
+    r = CliRunner().invoke(main, args[:-2] + ["--attrs", "mass", "-o", str(tmp_path / "other.json")])
+    assert r.exit_code == 2 and "attrs" in r.output and not (tmp_path / "other.json").exists()

@@ -196,6 +196,29 @@ def test_every_ieee_case_converts_with_its_bus_count():
     assert record["grid_removed_buses"].tolist() == [1201]  # case300's series capacitor
 
 
+def test_a_case_changed_halves_one_bus_inertia_or_takes_one_line_out():
+    """What a fitted network is tested against: the machines as the rule makes them on the whole grid,
+    one bus's inertia scaled, or one line gone (both directions) and every machine unchanged."""
+    pypower_or_skip()
+    scene = small("ieee14")
+    p = {**DEFAULTS, **scene.params}
+    graph, attrs, _ = scene.graph.network(p, "ieee14")
+    halved, changed, record = replace(scene.graph, inertia_factors=((5, 0.5),)).network(p, "ieee14")
+    assert changed[5, 0] == attrs[5, 0] / 2 and np.array_equal(np.delete(changed, 5, 0), np.delete(attrs, 5, 0))
+    assert halved.equals(graph) and record["grid_inertia_factors"].tolist() == [[5, 0.5]]
+    cut, same, record = replace(scene.graph, lines_out=((1, 2),)).network(p, "ieee14")
+    assert cut.n_edges == graph.n_edges - 2 and np.array_equal(same, attrs)
+    assert record["grid_lines_out"].tolist() == [[1, 2]]
+    assert not {(1, 2), (2, 1)} & set(map(tuple, cut.edges().tolist()))
+    for change, words in [({"lines_out": ((0, 13),)}, "no line"), ({"lines_out": ((6, 7),)}, "pieces"),
+                          ({"inertia_factors": ((14, 0.5),)}, "nodes 0..13"),
+                          ({"inertia_factors": ((3, 0.0),)}, "> 0")]:
+        with pytest.raises(InputError, match=words):
+            replace(scene.graph, **change).network(p, "ieee14")
+    traj = generate(replace(scene, graph=replace(scene.graph, lines_out=((1, 2),))), workers=1)
+    assert traj.graphs[0].n_edges == graph.n_edges - 2 and traj.attrs["grid_lines_out"].tolist() == [[1, 2]]
+
+
 def test_without_pypower_an_ieee_scene_names_the_extra(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "pypower", None)  # as if not installed
     r = CliRunner().invoke(main, ["generate", "ieee14", "-o", str(tmp_path / "t.h5"), "-B", "2", "--workers", "1"])
