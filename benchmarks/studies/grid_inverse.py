@@ -5,9 +5,12 @@ line out of service (a random line whose loss leaves the grid connected and in s
 generates 20 trajectories of the changed grid from fresh disturbances (data_gen.grids.GridCase's
 inertia_factors / lines_out), fits the nominal grid's inertias (`mpnode.fit_network`,
 what="node_attrs", attrs=[inertia]) or line susceptances (what="edge_weights") through the model,
-and records where the changed bus (line) falls in the fit's ranking, 0 being first.  Prints and
-writes one JSON object (default: beside the model, MODEL.grid_inverse.json): hits (rank 0) out of
-the draws, the seconds per fit, and every draw.  The numbers in docs/fit-network.md come from it.
+and records where the changed bus (line) falls in the fit's ranking, 0 being first, two ways:
+departures from the nominal values, and departures from the fit of 20 trajectories of the nominal
+grid (observed before the change, from other disturbances; fitted once per kind, the `reference`).
+Prints and writes one JSON object (default: beside the model, MODEL.grid_inverse.json): hits
+(rank 0) out of the draws, the seconds per fit, and every draw.  The numbers in
+docs/fit-network.md come from it.
 
     python benchmarks/studies/grid_inverse.py MODEL.h5 [--draws 10] [--trajectories 20] [--seed 0]
 """
@@ -41,15 +44,22 @@ def observed(scene, seed, trajectories, **change):
     return generate(replace(scene, graph=grid, trajectories=trajectories, seed=seed), workers=1)
 
 
-def record(fit, truth, generated):
-    """One draw's entry: where the changed bus (line) ranks, and what the fit found."""
-    return {"changed": truth, "rank": int(np.flatnonzero(fit.ranking == truth)[0]), "first": int(fit.ranking[0]),
-            "departure_changed": float(fit.departure[truth]), "departure_first": float(fit.departure[fit.ranking[0]]),
-            "loss_nominal": fit.loss_nominal, "loss": fit.loss, "iterations": fit.iterations,
-            "evaluations": fit.evaluations, "fit_seconds": fit.seconds, "generate_seconds": generated}
+def rank(departure, truth):
+    """Where ``truth`` falls when the departures (N,) or (L,) are sorted, largest first (0: first)."""
+    return int(np.flatnonzero(np.argsort(-departure, kind="stable") == truth)[0])
 
 
-def inertia_draw(model, scene, nominal, rng, seed, trajectories, iterations):
+def record(fit, truth, generated, from_nominal):
+    """One draw's entry: where the changed bus (line) ranks, from the reference's fit and from the
+    nominal values (``from_nominal``: the departures from them), and what the fit found."""
+    return {"changed": truth, "rank": rank(fit.departure, truth), "rank_from_nominal": rank(from_nominal, truth),
+            "first": int(fit.ranking[0]), "departure_changed": float(fit.departure[truth]),
+            "departure_first": float(fit.departure[fit.ranking[0]]), "loss_nominal": fit.loss_nominal,
+            "loss": fit.loss, "iterations": fit.iterations, "evaluations": fit.evaluations,
+            "fit_seconds": fit.seconds, "generate_seconds": generated}
+
+
+def inertia_draw(model, scene, nominal, reference, rng, seed, trajectories, iterations):
     """Halve one random bus's inertia; fit the inertias."""
     graph, attrs = nominal
     bus = int(rng.integers(graph.n_nodes))
@@ -57,12 +67,13 @@ def inertia_draw(model, scene, nominal, rng, seed, trajectories, iterations):
     data = observed(scene, seed, trajectories, inertia_factors=((bus, 0.5),))
     generated = time.perf_counter() - start
     fit = mpnode.fit_network(model, data, "node_attrs", attrs=[INERTIA], node_attrs=attrs, graph=graph,
-                             iterations=iterations)
-    return {**record(fit, bus, generated), "bus": bus, "fitted": float(fit.fitted[bus, 0]),
-            "nominal": float(attrs[bus, 0])}
+                             iterations=iterations, reference=reference)
+    from_nominal = np.abs(fit.fitted[:, 0] - attrs[:, 0]) / attrs[:, 0]
+    return {**record(fit, bus, generated, from_nominal), "bus": bus, "fitted": float(fit.fitted[bus, 0]),
+            "reference": float(fit.baseline[bus, 0]), "nominal": float(attrs[bus, 0])}
 
 
-def line_draw(model, scene, nominal, rng, seed, trajectories, iterations):
+def line_draw(model, scene, nominal, reference, rng, seed, trajectories, iterations):
     """Take one random line out of service (drawn again while the grid falls apart or out of step);
     fit the susceptances."""
     graph, attrs = nominal
@@ -76,17 +87,24 @@ def line_draw(model, scene, nominal, rng, seed, trajectories, iterations):
         except InputError:  # a line whose loss splits the grid, or leaves it no synchronous state
             continue
     generated = time.perf_counter() - start
-    fit = mpnode.fit_network(model, data, "edge_weights", node_attrs=attrs, graph=graph, iterations=iterations)
-    edge = int(np.flatnonzero(line_of == line)[0])
-    return {**record(fit, line, generated), "line": lines[line].tolist(), "fitted": float(fit.fitted[edge]),
-            "nominal": float(graph.weights[edge])}
+    fit = mpnode.fit_network(model, data, "edge_weights", node_attrs=attrs, graph=graph, iterations=iterations,
+                             reference=reference)
+    edge = np.unique(line_of, return_index=True)[1]  # the first edge of each line
+    from_nominal = np.abs(fit.fitted[edge] - graph.weights[edge]) / graph.weights[edge]
+    return {**record(fit, line, generated, from_nominal), "line": lines[line].tolist(),
+            "fitted": float(fit.fitted[edge[line]]), "reference": float(fit.baseline[edge[line]]),
+            "nominal": float(graph.weights[edge[line]])}
 
 
-def summary(draws):
-    """Hits (rank 0) and the seconds per fit of one kind of draw."""
+def summary(draws, reference):
+    """Hits (rank 0) both ways and the seconds per fit of one kind of draw, and the reference's fit."""
     seconds = [d["fit_seconds"] for d in draws]
     return {"hits": sum(d["rank"] == 0 for d in draws), "draws": len(draws), "ranks": [d["rank"] for d in draws],
-            "fit_seconds_median": float(np.median(seconds)), "fit_seconds_max": float(np.max(seconds))}
+            "hits_from_nominal": sum(d["rank_from_nominal"] == 0 for d in draws),
+            "ranks_from_nominal": [d["rank_from_nominal"] for d in draws],
+            "fit_seconds_median": float(np.median(seconds)), "fit_seconds_max": float(np.max(seconds)),
+            "reference_loss_nominal": reference.loss_nominal, "reference_loss": reference.loss,
+            "reference_seconds": reference.seconds, "reference_largest_departure": float(reference.departure.max())}
 
 
 def main(model_path, draws, trajectories, seed, iterations, output):
@@ -96,13 +114,22 @@ def main(model_path, draws, trajectories, seed, iterations, output):
     rng = np.random.default_rng(seed)
     out = {"model": model_path, "scene": scene.name, "trajectories": trajectories, "seed": seed,
            "iterations": iterations, "inertia": [], "line": []}
+    before = observed(scene, seed * 1000, trajectories)
+    graph, attrs = nominal
+    references = (mpnode.fit_network(model, before, "node_attrs", attrs=[INERTIA], node_attrs=attrs, graph=graph,
+                                     iterations=iterations),
+                  mpnode.fit_network(model, before, "edge_weights", node_attrs=attrs, graph=graph,
+                                     iterations=iterations))
     for k in range(draws):
-        out["inertia"].append(inertia_draw(model, scene, nominal, rng, seed * 1000 + 2 * k + 1, trajectories,
-                                           iterations))
-        out["line"].append(line_draw(model, scene, nominal, rng, seed * 1000 + 2 * k + 2, trajectories, iterations))
-        print(f"draw {k}: bus {out['inertia'][-1]['bus']} ranked {out['inertia'][-1]['rank']}, "
-              f"line {out['line'][-1]['line']} ranked {out['line'][-1]['rank']}", flush=True)
-    out["summary"] = {"inertia_halved": summary(out["inertia"]), "line_out": summary(out["line"])}
+        args = rng, seed * 1000 + 2 * k + 1, trajectories, iterations
+        out["inertia"].append(inertia_draw(model, scene, nominal, references[0], *args))
+        args = rng, seed * 1000 + 2 * k + 2, trajectories, iterations
+        out["line"].append(line_draw(model, scene, nominal, references[1], *args))
+        i, j = out["inertia"][-1], out["line"][-1]
+        print(f"draw {k}: bus {i['bus']} ranked {i['rank']} ({i['rank_from_nominal']} from nominal), "
+              f"line {j['line']} ranked {j['rank']} ({j['rank_from_nominal']} from nominal)", flush=True)
+    out["summary"] = {"inertia_halved": summary(out["inertia"], references[0]),
+                      "line_out": summary(out["line"], references[1])}
     with open(output, "w") as f:
         json.dump(out, f, indent=1)
     print(json.dumps(out["summary"], indent=1))

@@ -12,8 +12,10 @@ one of 8 move alike, and a departure is relative: (fitted - nominal) / nominal. 
 its reverse of the same nominal weight (both directions of an undirected line) are one parameter.
 
 A model is only as good a witness as it is accurate: a parameter the observations hardly
-constrain, or one that takes up the model's own error, moves too.  The ranking says which moved
-most, not why (docs/fit-network.md).
+constrain, or one that takes up the model's own error, moves too.  Observations of the nominal
+network (``reference``: from before the change) are fitted alike, and the departures then
+measured between the two fits: what the model gets wrong moves both and drops out
+(docs/fit-network.md says what each way measured).
 """
 import os
 import time
@@ -44,21 +46,25 @@ class NetworkFit:
     what : "node_attrs" or "edge_weights"
     nominal, fitted : (N, dp) every node attribute (those not fitted stay nominal), or (E,) every
         edge weight in the graph's CSR order
+    baseline : what departures are measured from, like fitted: the nominal values, or the fit to
+        the reference observations when `fit_network` was given them
     attr_names : the model's attributes (the columns of nominal and fitted; [] for edge weights)
     columns : the names of the attributes fitted ([] for edge weights)
     lines : (L, 2) the two nodes of each line (an undirected edge once, lower node first; a
         one-way edge as (receiver, sender)); None for node attributes
     line_of : (E,) the line of each edge; None for node attributes
-    change : (N, len(columns)) or (L,): (fitted - nominal) / the parameter's nominal size
+    change : (N, len(columns)) or (L,): (fitted - baseline) / the parameter's nominal size
     departure : (N,) or (L,) |change| (a node's: the largest over its fitted columns)
     ranking : node (line) indices by departure, most departed first
     loss_nominal, loss : the loss at the start (the nominal values, within the bounds) and at the fit
-    iterations, evaluations, seconds, message : the optimiser's
+    reference_loss : the loss of the reference's fit, None without a reference
+    iterations, evaluations, message : the optimiser's;  seconds : of the fit (and the reference's)
     """
 
     what: str
     nominal: np.ndarray
     fitted: np.ndarray
+    baseline: np.ndarray
     attr_names: list
     columns: list
     lines: np.ndarray
@@ -68,6 +74,7 @@ class NetworkFit:
     ranking: np.ndarray
     loss_nominal: float
     loss: float
+    reference_loss: float
     iterations: int
     evaluations: int
     seconds: float
@@ -78,23 +85,23 @@ class NetworkFit:
         return {k: v.tolist() if isinstance(v, np.ndarray) else v for k, v in self.__dict__.items()}
 
     def describe(self, top=5):
-        """Lines of text: the ``top`` most departed nodes (lines), each with its nominal and fitted values."""
+        """Lines of text: the ``top`` most departed nodes (lines), each with its baseline and fitted values."""
         out = []
         for k in self.ranking[:top]:
             if self.lines is None:
-                values = ", ".join(f"{name} {self.nominal[k, c]:.4g} -> {self.fitted[k, c]:.4g}"
+                values = ", ".join(f"{name} {self.baseline[k, c]:.4g} -> {self.fitted[k, c]:.4g}"
                                    for name, c in ((a, self.attr_names.index(a)) for a in self.columns))
                 out.append(f"node {k}: {values} (departure {self.departure[k]:.3g})")
             else:
                 i, j = self.lines[k]
                 edge = int(np.flatnonzero(self.line_of == k)[0])
-                out.append(f"line {i}-{j}: weight {self.nominal[edge]:.4g} -> {self.fitted[edge]:.4g} "
+                out.append(f"line {i}-{j}: weight {self.baseline[edge]:.4g} -> {self.fitted[edge]:.4g} "
                            f"(departure {self.departure[k]:.3g})")
         return out
 
 
 def fit_network(model, data, what="node_attrs", attrs=None, node_attrs=None, graph=None, bounds=None,
-                iterations=100):
+                iterations=100, reference=None):
     """Fit the node attributes (``what="node_attrs"``) or edge weights (``"edge_weights"``) of the
     one network behind ``data`` through ``model``, from the nominal network: a NetworkFit whose
     ``ranking`` names the nodes (lines) that moved most, relative to nominal.
@@ -110,37 +117,64 @@ def fit_network(model, data, what="node_attrs", attrs=None, node_attrs=None, gra
         Default: >= 0 for an attribute column whose nominal values are all positive and for
         weights that are all >= 0, none otherwise.
     iterations : L-BFGS-B's iterations at most
+    reference : None, or trajectories (a file) observed on the nominal network (before the
+        change), or the NetworkFit of such trajectories (fitted once, compared with many): the
+        departures are then measured from that fit instead of from the nominal values.  What the
+        model gets wrong moves both fits alike and drops out of the difference.
     """
     if what not in WHAT:
         raise InputError(SOURCE, "what", f"is {what!r}", " or ".join(repr(w) for w in WHAT))
     iterations = check_int(iterations, SOURCE, "iterations", 1)
-    model, traj = _loaded(model, data)
-    attrs_nominal = _nominal_attrs(model, traj, node_attrs)
-    view = traj if attrs_nominal is None else replace(traj, node_attrs=attrs_nominal, attr_names=model.attr_names)
-    check_data(model, [attrs_as_controls(view)], [SOURCE])  # dimensions, dt, nodes: the data as the model hears them
-    problem = _Problem(model, traj, attrs_nominal, _nominal_graph(model, traj, graph))
-    params = _AttrParameters(problem, attrs) if what == "node_attrs" else _WeightParameters(problem)
-    low, high = params.box(bounds)
-    start = time.perf_counter()
-    p, loss_nominal, res = _minimise(lambda p: params.loss(p), params.p0, params.scale, low, high, iterations)
-    seconds = time.perf_counter() - start
-    change = params.shaped((p - params.p0) / params.scale)
+    model = (Model.load(model) if isinstance(model, (str, bytes, os.PathLike)) else model).copy(np.float64)
+    traj = _data(model, data)
+    nominal = _nominal_attrs(model, traj, node_attrs), _nominal_graph(model, traj, graph)
+    params, p, loss_nominal, res, seconds = _fitted(model, traj, nominal, what, attrs, bounds, iterations)
+    base, reference_loss = params.p0, None
+    if isinstance(reference, NetworkFit):
+        base, reference_loss = params.flat(_checked_reference(reference, params, what)), reference.loss
+    elif reference is not None:
+        _, base, _, ref, ref_seconds = _fitted(model, _data(model, reference), nominal, what, attrs, bounds,
+                                               iterations)
+        reference_loss, seconds = float(ref.fun), seconds + ref_seconds
+    change = params.shaped((p - base) / params.scale)
     departure = np.abs(change).max(axis=1) if change.ndim == 2 else np.abs(change)
-    return NetworkFit(what, params.nominal, params.quantity(p), params.attr_names, params.columns, params.lines,
-                      params.line_of, change, departure, np.argsort(-departure, kind="stable"), loss_nominal,
-                      float(res.fun), int(res.nit), int(res.nfev), seconds, str(res.message))
+    return NetworkFit(what, params.nominal, params.quantity(p), params.quantity(base), params.attr_names,
+                      params.columns, params.lines, params.line_of, change, departure,
+                      np.argsort(-departure, kind="stable"), loss_nominal, float(res.fun), reference_loss,
+                      int(res.nit), int(res.nfev), seconds, str(res.message))
 
 
-def _loaded(model, data):
-    """The model as a float64 copy (the line search needs more digits than float32 gives) and the
-    data with room for its latent dimensions, read from their files when given as paths."""
-    if isinstance(model, (str, bytes, os.PathLike)):
-        model = Model.load(model)
+def _checked_reference(reference, params, what):
+    """The fitted values of a reference NetworkFit, when it fitted what this fit does on the same network."""
+    same = reference.what == what and reference.columns == params.columns
+    same = same and np.shape(reference.nominal) == np.shape(params.nominal)
+    if not same or not np.array_equal(reference.nominal, params.nominal):
+        raise InputError(SOURCE, "reference", f"is a fit of {reference.what} {', '.join(reference.columns)} "
+                         "from another nominal network", f"a fit of the same {what} from the same nominal network")
+    return reference.fitted
+
+
+def _data(model, data):
+    """Trajectories (read from their file when given as a path) with room for the model's latent dimensions."""
     if isinstance(data, (str, bytes, os.PathLike)):
         from mpnode.data.files import read_trajectories
 
         data = read_trajectories(data)
-    return model.copy(np.float64), model.fitted(data)
+    return model.fitted(data)
+
+
+def _fitted(model, traj, nominal, what, attrs, bounds, iterations):
+    """One fit of ``traj`` from the ``nominal`` (node attributes, graph): (the parameters, their
+    fitted values, the loss at the start, scipy's result, seconds)."""
+    attrs_nominal, graph = nominal
+    view = traj if attrs_nominal is None else replace(traj, node_attrs=attrs_nominal, attr_names=model.attr_names)
+    check_data(model, [attrs_as_controls(view)], [SOURCE])  # dimensions, dt, nodes: the data as the model hears them
+    problem = _Problem(model, traj, attrs_nominal, graph)
+    params = _AttrParameters(problem, attrs) if what == "node_attrs" else _WeightParameters(problem)
+    low, high = params.box(bounds)
+    start = time.perf_counter()
+    p, loss_nominal, res = _minimise(params.loss, params.p0, params.scale, low, high, iterations)
+    return params, p, loss_nominal, res, time.perf_counter() - start
 
 
 def _nominal_attrs(model, traj, node_attrs):
@@ -286,6 +320,9 @@ class _AttrParameters:
     def shaped(self, p):
         return np.asarray(p).reshape(len(self.nominal), len(self.cols))
 
+    def flat(self, quantity):
+        return np.asarray(quantity)[:, self.cols].ravel()
+
     def loss(self, p):
         value, g = self.problem.loss(attrs=self.quantity(p))
         return value, g[:, self.cols].ravel()
@@ -316,6 +353,11 @@ class _WeightParameters:
 
     def shaped(self, p):
         return np.asarray(p)
+
+    def flat(self, quantity):
+        p = np.zeros(len(self.p0))
+        p[self.line_of] = quantity
+        return p
 
     def loss(self, p):
         value, g = self.problem.loss(weights=self.quantity(p))
