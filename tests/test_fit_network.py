@@ -1,6 +1,7 @@
 """fit_network: the loss's gradient is exact, and a fit through the model that made the data names
 the node (line) that was changed."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from mpnode.data import Trajectories
 from mpnode.evaluation.network_fit import _AttrParameters, _Problem, _WeightParameters, lines_of
 from mpnode.model import Model
 from mpnode.model.config import ModelConfig
+from doc_snippets import fenced_blocks, run_python, run_shell
 from network_helpers import ring
 
 N, B, T = 6, 8, 12
@@ -156,3 +158,21 @@ def test_a_reference_from_before_the_change_cancels_what_the_model_gets_wrong():
     np.testing.assert_allclose(again.change, fit.change, atol=1e-6)
     with pytest.raises(InputError, match="reference"):
         mpnode.fit_network(wrong, after, attrs="size", node_attrs=attrs, reference=before)
+
+
+@pytest.mark.slow
+def test_the_worked_example_runs_as_written(tmp_path, monkeypatch):
+    """docs/fit-network.md in one folder: its commands and python in order (a shorter training, and
+    fits of a few iterations)."""
+    pytest.importorskip("pypower", reason="the example reads ieee39: the extra grids is not installed")
+    doc = Path(__file__).resolve().parents[1] / "docs" / "fit-network.md"
+    blocks = fenced_blocks(doc.read_text())
+    assert [lang for lang, _, _ in blocks] == ["", "python", "", "python"]
+    train = "mpnode train grids10-30 -o grids.h5 --time-limit 30m"
+    assert blocks[0][1].count(train) == 1
+    run_shell(blocks[0][1].replace(train, "mpnode train grid10 -o grids.h5 --trajectories 8 --epochs 1"), tmp_path)
+    run_python(blocks[1][1], tmp_path, monkeypatch)
+    assert blocks[2][1].count("--reference before.h5") == 2 and blocks[3][1].count("**planned)") == 2
+    run_shell(blocks[2][1].replace("--reference before.h5", "--reference before.h5 --iterations 3"), tmp_path)
+    assert json.loads((tmp_path / "bus.json").read_text())["reference_file"] == "before.h5"
+    run_python(blocks[3][1].replace("**planned)", "**planned, iterations=3)"), tmp_path, monkeypatch)
