@@ -19,13 +19,16 @@ from .main import claim_outputs, main
 @click.option("--reference", type=click.Path(dir_okay=False), metavar="BEFORE.h5",
               help="Trajectories observed on the nominal network (before the change): fitted alike, and the "
                    "departures measured from that fit, so that what MODEL gets wrong drops out.")
+@click.option("--window", type=click.IntRange(min=1), metavar="K",
+              help="Roll out windows of K steps, each from its own first observation, instead of whole "
+                   "trajectories: a model that drifts over a long rollout is still right over a short one.")
 @click.option("--iterations", type=click.IntRange(min=1), default=100, show_default=True,
               help="L-BFGS-B iterations at most.")
 @click.option("--top", type=click.IntRange(min=1), default=5, show_default=True,
               help="The most departed nodes (lines) printed.")
 @click.option("-o", "--output", type=click.Path(dir_okay=False),
               help="Write the whole fit as JSON here (atomic): fitted and nominal values, departures, ranking.")
-def fit_network_cmd(model_file, data, what, attrs, nominal, reference, iterations, top, output):
+def fit_network_cmd(model_file, data, what, attrs, nominal, reference, window, iterations, top, output):
     """Fit the node attributes or edge weights of the network behind DATA's
     trajectories through MODEL, starting from the nominal network, and print
     the nodes (lines) that departed most from it, relative to their nominal
@@ -54,7 +57,7 @@ def fit_network_cmd(model_file, data, what, attrs, nominal, reference, iteration
     node_attrs = None if planned is None or planned.node_attrs is None else planned.node_attrs[0]
     graph = None if planned is None else planned.graphs[0]
     fit = fit_network(model_file, data, what, attrs=list(attrs) or None, node_attrs=node_attrs, graph=graph,
-                      iterations=iterations, reference=reference)
+                      iterations=iterations, reference=reference, window=window)
     click.echo(f"loss {fit.loss_nominal:.4g} at the nominal network, {fit.loss:.4g} fitted "
                f"({fit.iterations} iterations, {fit.seconds:.1f} s; {fit.message.lower()})")
     click.echo("most departed from " + ("the reference's fit" if reference else "nominal") + " first:")

@@ -10,7 +10,7 @@ import mpnode
 from mpnode.base.errors import InputError
 from mpnode.base.graph import Graph
 from mpnode.data import Trajectories
-from mpnode.evaluation.network_fit import _AttrParameters, _Problem, _WeightParameters, lines_of
+from mpnode.evaluation.network_fit import _AttrParameters, _Problem, _WeightParameters, _windows, lines_of
 from mpnode.model import Model
 from mpnode.model.config import ModelConfig
 from doc_snippets import fenced_blocks, run_python, run_shell
@@ -82,6 +82,19 @@ def test_a_fit_names_the_node_whose_attribute_changed():
     np.testing.assert_array_equal(fit.fitted[:, 1], attrs[:, 1])  # the column not fitted stays nominal
     assert fit.loss < 1e-6 * fit.loss_nominal and fit.departure.shape == (N,) and fit.change.shape == (N, 1)
     assert fit.describe(1)[0].startswith("node 4: rate")
+
+
+def test_windows_are_trajectories_of_their_own_from_every_kth_observation():
+    m = model()
+    attrs, graph = nominal()
+    data = made_by(m, attrs, graph)
+    cut = _windows(data, 5)  # T = 12: windows from 0 and 5, the last two steps left out
+    assert cut.x.shape == (2 * B, 6, N, 1) and np.array_equal(cut.x[B + 3], data.x[3, 5:11])
+    assert cut.node_attrs.shape == (2 * B, N, 2) and _windows(data, T) is data
+    changed = attrs.copy()
+    changed[4, 0] *= 0.5
+    fit = mpnode.fit_network(m, made_by(m, changed, graph), attrs=["rate"], node_attrs=attrs, window=4)
+    assert fit.ranking[0] == 4 and fit.fitted[4, 0] < 0.9 * attrs[4, 0]  # not exact: each window's messages start at 0
 
 
 def test_a_fit_names_the_line_taken_out():

@@ -12,7 +12,7 @@ Prints and writes one JSON object (default: beside the model, MODEL.grid_inverse
 (rank 0) out of the draws, the seconds per fit, and every draw.  The numbers in
 docs/fit-network.md come from it.
 
-    python benchmarks/studies/grid_inverse.py MODEL.h5 [--draws 10] [--trajectories 20] [--seed 0]
+    python benchmarks/studies/grid_inverse.py MODEL.h5 [--draws 10] [--trajectories 20] [--seed 0] [--window K]
 """
 import argparse
 import json
@@ -59,7 +59,7 @@ def record(fit, truth, generated, from_nominal):
             "fit_seconds": fit.seconds, "generate_seconds": generated}
 
 
-def inertia_draw(model, scene, nominal, reference, rng, seed, trajectories, iterations):
+def inertia_draw(model, scene, nominal, reference, rng, seed, trajectories, iterations, window):
     """Halve one random bus's inertia; fit the inertias."""
     graph, attrs = nominal
     bus = int(rng.integers(graph.n_nodes))
@@ -67,13 +67,13 @@ def inertia_draw(model, scene, nominal, reference, rng, seed, trajectories, iter
     data = observed(scene, seed, trajectories, inertia_factors=((bus, 0.5),))
     generated = time.perf_counter() - start
     fit = mpnode.fit_network(model, data, "node_attrs", attrs=[INERTIA], node_attrs=attrs, graph=graph,
-                             iterations=iterations, reference=reference)
+                             iterations=iterations, reference=reference, window=window)
     from_nominal = np.abs(fit.fitted[:, 0] - attrs[:, 0]) / attrs[:, 0]
     return {**record(fit, bus, generated, from_nominal), "bus": bus, "fitted": float(fit.fitted[bus, 0]),
             "reference": float(fit.baseline[bus, 0]), "nominal": float(attrs[bus, 0])}
 
 
-def line_draw(model, scene, nominal, reference, rng, seed, trajectories, iterations):
+def line_draw(model, scene, nominal, reference, rng, seed, trajectories, iterations, window):
     """Take one random line out of service (drawn again while the grid falls apart or out of step);
     fit the susceptances."""
     graph, attrs = nominal
@@ -88,7 +88,7 @@ def line_draw(model, scene, nominal, reference, rng, seed, trajectories, iterati
             continue
     generated = time.perf_counter() - start
     fit = mpnode.fit_network(model, data, "edge_weights", node_attrs=attrs, graph=graph, iterations=iterations,
-                             reference=reference)
+                             reference=reference, window=window)
     edge = np.unique(line_of, return_index=True)[1]  # the first edge of each line
     from_nominal = np.abs(fit.fitted[edge] - graph.weights[edge]) / graph.weights[edge]
     return {**record(fit, line, generated, from_nominal), "line": lines[line].tolist(),
@@ -107,23 +107,23 @@ def summary(draws, reference):
             "reference_seconds": reference.seconds, "reference_largest_departure": float(reference.departure.max())}
 
 
-def main(model_path, draws, trajectories, seed, iterations, output):
+def main(model_path, draws, trajectories, seed, iterations, window, output):
     model = mpnode.Model.load(model_path)
     scene = BUILTIN["ieee39"]
     nominal = nominal_grid(scene)
     rng = np.random.default_rng(seed)
     out = {"model": model_path, "scene": scene.name, "trajectories": trajectories, "seed": seed,
-           "iterations": iterations, "inertia": [], "line": []}
+           "iterations": iterations, "window": window, "inertia": [], "line": []}
     before = observed(scene, seed * 1000, trajectories)
     graph, attrs = nominal
     references = (mpnode.fit_network(model, before, "node_attrs", attrs=[INERTIA], node_attrs=attrs, graph=graph,
-                                     iterations=iterations),
+                                     iterations=iterations, window=window),
                   mpnode.fit_network(model, before, "edge_weights", node_attrs=attrs, graph=graph,
-                                     iterations=iterations))
+                                     iterations=iterations, window=window))
     for k in range(draws):
-        args = rng, seed * 1000 + 2 * k + 1, trajectories, iterations
+        args = rng, seed * 1000 + 2 * k + 1, trajectories, iterations, window
         out["inertia"].append(inertia_draw(model, scene, nominal, references[0], *args))
-        args = rng, seed * 1000 + 2 * k + 2, trajectories, iterations
+        args = rng, seed * 1000 + 2 * k + 2, trajectories, iterations, window
         out["line"].append(line_draw(model, scene, nominal, references[1], *args))
         i, j = out["inertia"][-1], out["line"][-1]
         print(f"draw {k}: bus {i['bus']} ranked {i['rank']} ({i['rank_from_nominal']} from nominal), "
@@ -142,7 +142,8 @@ if __name__ == "__main__":
     parser.add_argument("--trajectories", type=int, default=20)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--iterations", type=int, default=100, help="L-BFGS-B iterations per fit at most")
+    parser.add_argument("--window", type=int, help="fit windows of this many steps (default: whole trajectories)")
     parser.add_argument("-o", "--output", help="the JSON written (default MODEL.grid_inverse.json)")
     args = parser.parse_args()
-    main(args.model, args.draws, args.trajectories, args.seed, args.iterations,
+    main(args.model, args.draws, args.trajectories, args.seed, args.iterations, args.window,
          args.output or args.model + ".grid_inverse.json")

@@ -101,7 +101,7 @@ class NetworkFit:
 
 
 def fit_network(model, data, what="node_attrs", attrs=None, node_attrs=None, graph=None, bounds=None,
-                iterations=100, reference=None):
+                iterations=100, reference=None, window=None):
     """Fit the node attributes (``what="node_attrs"``) or edge weights (``"edge_weights"``) of the
     one network behind ``data`` through ``model``, from the nominal network: a NetworkFit whose
     ``ranking`` names the nodes (lines) that moved most, relative to nominal.
@@ -121,19 +121,23 @@ def fit_network(model, data, what="node_attrs", attrs=None, node_attrs=None, gra
         change), or the NetworkFit of such trajectories (fitted once, compared with many): the
         departures are then measured from that fit instead of from the nominal values.  What the
         model gets wrong moves both fits alike and drops out of the difference.
+    window : None (each rollout runs the whole trajectory), or K: the trajectories cut into windows
+        of K steps, each rolled out from its own first observation (messages from 0, as training's
+        windows start): a model that drifts over a long rollout is still right over a short one
     """
     if what not in WHAT:
         raise InputError(SOURCE, "what", f"is {what!r}", " or ".join(repr(w) for w in WHAT))
     iterations = check_int(iterations, SOURCE, "iterations", 1)
+    window = None if window is None else check_int(window, SOURCE, "window", 1)
     model = (Model.load(model) if isinstance(model, (str, bytes, os.PathLike)) else model).copy(np.float64)
-    traj = _data(model, data)
+    traj = _data(model, data, window)
     nominal = _nominal_attrs(model, traj, node_attrs), _nominal_graph(model, traj, graph)
     params, p, loss_nominal, res, seconds = _fitted(model, traj, nominal, what, attrs, bounds, iterations)
     base, reference_loss = params.p0, None
     if isinstance(reference, NetworkFit):
         base, reference_loss = params.flat(_checked_reference(reference, params, what)), reference.loss
     elif reference is not None:
-        _, base, _, ref, ref_seconds = _fitted(model, _data(model, reference), nominal, what, attrs, bounds,
+        _, base, _, ref, ref_seconds = _fitted(model, _data(model, reference, window), nominal, what, attrs, bounds,
                                                iterations)
         reference_loss, seconds = float(ref.fun), seconds + ref_seconds
     change = params.shaped((p - base) / params.scale)
@@ -154,13 +158,32 @@ def _checked_reference(reference, params, what):
     return reference.fitted
 
 
-def _data(model, data):
-    """Trajectories (read from their file when given as a path) with room for the model's latent dimensions."""
+def _data(model, data, window):
+    """Trajectories (read from their file when given as a path) with room for the model's latent
+    dimensions, cut into windows of ``window`` steps (None: whole)."""
     if isinstance(data, (str, bytes, os.PathLike)):
         from mpnode.data.files import read_trajectories
 
         data = read_trajectories(data)
-    return model.fitted(data)
+    return model.fitted(_windows(data, window))
+
+
+def _windows(traj, k):
+    """``traj`` cut into windows of k steps from every k-th observation, each a trajectory of its own
+    (those that start after their trajectory's end left out); ``traj`` when k is None or not shorter."""
+    if k is None or k >= traj.horizon:
+        return traj
+    starts = range(0, traj.horizon - k + 1, k)
+
+    def cut(a, extra):
+        return None if a is None else np.concatenate([np.asarray(a)[:, s:s + k + extra] for s in starts])
+
+    t = cut(traj.t, 1)
+    keep = slice(None) if t is None else np.isfinite(t[:, 0])
+    attrs = None if traj.node_attrs is None else np.concatenate([traj.node_attrs] * len(starts))[keep]
+    return replace(traj, x=cut(traj.x, 1)[keep], u=None if traj.u is None else cut(traj.u, 0)[keep],
+                   t=None if t is None else t[keep], truth=None, x_std=None, node_attrs=attrs,
+                   graph_index=np.tile(traj.graph_index, len(starts))[keep])
 
 
 def _fitted(model, traj, nominal, what, attrs, bounds, iterations):
