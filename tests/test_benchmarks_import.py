@@ -10,10 +10,10 @@ PAPER = BENCHMARKS / "paper"
 #: the paper suite's modules every experiment may import (the run definitions, the paper's numbers, helpers)
 SHARED = {"common", "runs_shared", "paper_numbers", "gene_grid"}
 #: the study scripts kept in the tree
-STUDIES = {"grid_inverse.py", "imperfect_data.py", "long_rollouts.py", "spread_ranking.py", "time_to_accuracy.py", "tta_torch.py",
-           "mpc/figures.py", "mpc/pendulum_mpc.py", "mpc/plan_windows.py", "mpc/quadrotor_mpc.py",
-           "mpc/torque_segments.py", "mpc/true_equations.py", "quadrotor/sizes_table.py", "quadrotor/swarm.py",
-           "spring_chains.py"}
+STUDIES = {"grid_inverse.py", "imperfect_data.py", "long_rollouts.py", "network_fit_error.py", "spread_ranking.py",
+           "time_to_accuracy.py", "tta_torch.py", "mpc/figures.py", "mpc/pendulum_mpc.py", "mpc/plan_windows.py",
+           "mpc/quadrotor_mpc.py", "mpc/torque_segments.py", "mpc/true_equations.py", "quadrotor/sizes_table.py",
+           "quadrotor/swarm.py", "spring_chains.py"}
 
 IMPORT_ALL = """
 import importlib.util, sys, traceback
