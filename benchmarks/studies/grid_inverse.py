@@ -10,7 +10,7 @@ departures from the nominal values, and departures from the fit of 20 trajectori
 grid (observed before the change, from other disturbances; fitted once per kind, the `reference`).
 Prints and writes one JSON object (default: beside the model, MODEL.grid_inverse.json): hits
 (rank 0) out of the draws, the seconds per fit, and every draw.  The numbers in
-docs/fit-network.md come from it.
+docs/evidence/fit-network.md come from it.
 
     python benchmarks/studies/grid_inverse.py MODEL.h5 [--draws 10] [--trajectories 20] [--seed 0] [--window K]
 """

@@ -8,7 +8,7 @@ of the truth whose every weight is off by a relative error drawn with standard d
 of 20 trajectories of the unchanged network (`reference`).  Prints, per ERROR, the hits (the
 changed node ranked first) of each way out of the draws and the median normalised MSE of the wrong
 model's rollouts of the unchanged network (what `mpnode eval` would report of it), as one JSON
-object; docs/fit-network.md quotes it.
+object; docs/evidence/fit-network.md quotes it.
 
     python benchmarks/studies/network_fit_error.py [--draws 10] [--errors 0.02,0.05,0.1,0.2,0.4]
 """
