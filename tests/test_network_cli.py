@@ -82,6 +82,19 @@ def test_an_ensemble_simulator_hears_the_attributes_too():
     assert sim.spread is not None and sim.spread.max() > 0
 
 
+def test_an_ensemble_rolls_out_with_node_attributes_as_its_members_do():
+    members = [attributed(seed=s) for s in (0, 1)]
+    ens, g = Ensemble(members), weighted_ring()
+    x0, a = np.random.default_rng(5).uniform(-1, 1, (2, 4, 1)), np.random.default_rng(6).uniform(0.2, 2, (2, 4, 1))
+    each = np.stack([m.rollout(x0, g, steps=5, node_attrs=a) for m in members])
+    np.testing.assert_allclose(ens.rollout(x0, g, steps=5, node_attrs=a), each.mean(axis=0), rtol=1e-13, atol=1e-14)
+    mean, spread = ens.predict(x0, g, steps=5, node_attrs=a)
+    np.testing.assert_allclose(mean, each.mean(axis=0), rtol=1e-13, atol=1e-14)
+    assert spread.shape == mean.shape and spread.max() > 0
+    other = np.stack([m.rollout(x0, g, steps=5, node_attrs=a[::-1]) for m in members])
+    assert not np.allclose(other, each)  # the attributes reach every member
+
+
 def test_the_simulator_refuses_attributes_and_weights_that_are_not_the_models():
     a = np.ones((4, 1))
     with pytest.raises(InputError, match="node_attrs: is missing.*rate"):

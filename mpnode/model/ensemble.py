@@ -96,17 +96,17 @@ class Ensemble:
         if not np.all(np.isfinite(self.spread_scale)):
             raise NumericalError("the ensemble's spread_scale contains non-finite values")
 
-    def rollout(self, x0, graph, u=None, steps=None, backend="auto", times=None):
+    def rollout(self, x0, graph, u=None, steps=None, backend="auto", times=None, node_attrs=None):
         """The members' mean rollout (Model.rollout's arguments and shape)."""
-        return self.rollout_members(x0, graph, u, steps, backend, times).mean(axis=0).astype(self.dtype)
+        return self.rollout_members(x0, graph, u, steps, backend, times, node_attrs).mean(axis=0).astype(self.dtype)
 
-    def rollout_members(self, x0, graph, u=None, steps=None, backend="auto", times=None):
+    def rollout_members(self, x0, graph, u=None, steps=None, backend="auto", times=None, node_attrs=None):
         """(K, ...) every member's rollout from the same start (Model.rollout's shape after K)."""
-        return np.stack([m.rollout(x0, graph, u, steps, backend, times) for m in self.members])
+        return np.stack([m.rollout(x0, graph, u, steps, backend, times, node_attrs) for m in self.members])
 
-    def predict(self, x0, graph, u=None, steps=None, backend="auto", times=None):
+    def predict(self, x0, graph, u=None, steps=None, backend="auto", times=None, node_attrs=None):
         """(mean, spread): the members' mean rollout and its calibrated spread, both in data units."""
-        xs = self.rollout_members(x0, graph, u, steps, backend, times)
+        xs = self.rollout_members(x0, graph, u, steps, backend, times, node_attrs)
         return xs.mean(axis=0), self.spread(xs)
 
     def spread(self, member_predictions):
