@@ -237,7 +237,7 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
             axes[list(ds).index(d), 0].set_ylabel(f"{names[d]}\n(never measured: the model's hidden state)")
     _error_panel(fig.add_subplot(spec[:, -1]), scored, pred, truth.dt, result, times)
     if network:
-        _network_row(fig, outer[1], truth, clean, pred, nodes, names, times)
+        _network_row(fig, outer[1], truth, x, clean, pred, nodes, names, times)
     head = title or f"{truth.system}: prediction against {'truth' if clean is not None else 'observations'}"
     first = max(1, result.warmup)
     fig.suptitle(f"{head}: normalised MSE {result.nmse:.3g} (mean over steps {first}..{x.shape[1] - 1})"
@@ -245,15 +245,15 @@ def plot_eval(truth, result, out=None, *, trajectories=2, nodes=3, dims=4, title
     return _finish(fig, out)
 
 
-def _network_row(fig, spec, truth, clean, pred, nodes, names, times):
+def _network_row(fig, spec, truth, observed, clean, pred, nodes, names, times):
     """The network coloured by each node's error (mpnode.evaluation.nodes.NodeErrors), beside the worst
-    and the median node's watched dimension over the first trajectories on that network."""
+    and the median node's watched dimension over the first trajectories on that network (``observed``:
+    the file's x as float64)."""
     row = spec.subgridspec(1, 3, width_ratios=[1.5, 1, 1])
     graph = truth.graphs[nodes.graph]
     dims = [d for d in nodes.dims if d < len(names)]  # a model's latent dimensions have no truth to draw
     what = "the whole state" if len(dims) == len(names) else ", ".join(names[d] for d in dims)
     _network_panel(fig, fig.add_subplot(row[0, 0]), graph, nodes, what)
-    observed = np.asarray(truth.x, dtype=np.float64)
     rows = nodes.trajectories[:3]
     first = None
     for k, (label, i) in enumerate((("worst", (nodes.worst(1) or [None])[0]), ("median", nodes.median()))):
@@ -271,9 +271,9 @@ def _network_row(fig, spec, truth, clean, pred, nodes, names, times):
             with np.errstate(invalid="ignore"):
                 ax.plot(t, np.where(np.isfinite(pred[b, :, i, d]), pred[b, :, i, d], np.nan), color=f"C{c}",
                         lw=1.8, ls="--")
-        reference = observed if clean is None else clean
-        if np.isfinite(reference[rows][:, :, i, d]).any():
-            ax.set_ylim(*_limits(reference[rows][:, :, i, d], pred[rows][:, :, i, d]))
+        shown = (observed if clean is None else clean)[rows][:, :, i, d]
+        if np.isfinite(shown).any():
+            ax.set_ylim(*_limits(shown, pred[rows][:, :, i, d]))
         ax.set_title(f"{label}: {nodes.name(i)}, nMSE {nodes.error[i]:.3g}")
         ax.set_ylabel(names[d])
         ax.set_xlabel(time_label(truth.dt))
