@@ -10,10 +10,11 @@ Plain helpers for the engine tests (the NumPy reference, test graphs) are in eng
 
 Compiling the kernels on both cores.  With a cold numba cache (a fresh clone, or an edit to
 mpnode/engine/kernels), compiling dominates the suite: each of the four drivers (rollout and
-VJP, block and stagewise) is compiled for float32 and for float64, and numba compiles one
-function at a time.  So the first call to a driver in this process (`_KernelWarmUp`) starts two
-processes, tests/warm_kernels.py float64 and float32, which compile the drivers into numba's
-on-disk cache on one core each, waits for them, and goes on: numba then loads each driver
+VJP, block and stagewise) is compiled for float32 and for float64 and for each field (MP-NODE,
+L2S), and numba compiles one function at a time.  So the first call to a driver in this
+process (`_KernelWarmUp`) starts two processes, tests/warm_kernels.py float64 and float32,
+which compile the drivers into numba's on-disk cache on one core each, waits for them, and goes
+on: numba then loads each driver
 from the cache, as in any second run, so the tests run the very code they would have compiled
 (same functions, same types, same flags).  With a warm cache the two processes only load it.
 The warm-up cannot stall or change the suite: if a process fails, or has not finished after

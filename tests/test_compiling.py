@@ -36,11 +36,11 @@ def test_a_driver_that_is_not_compiled_compiles_ahead_in_another_process_and_is_
     started = []
     popen = compiling.subprocess.Popen
     monkeypatch.setattr(compiling.subprocess, "Popen", lambda *a, **k: started.append(a[0]) or popen(*a, **k))
-    monkeypatch.setattr(compiling, "is_compiled", lambda name, dtype: False)
+    monkeypatch.setattr(compiling, "is_compiled", lambda name, dtype, field: False)
     gtheta, gx0 = _tiny_vjp()
-    assert len(started) == 1 and started[0][-2:] == ["float32", "blocks"]
+    assert len(started) == 1 and started[0][-3:] == ["float32", "blocks", "mpnode"]
     assert not compiling._pending  # the VJP waited for it
-    assert fresh_state == ["compiling the kernels for float32, once: ~180 s"]
+    assert fresh_state == ["compiling the MP-NODE kernels for float32, once: ~100 s"]
     assert np.isfinite(gtheta).all() and np.abs(gtheta).sum() > 0
     seconds = json.loads(open(compiling._times_path()).read())
     assert set(seconds) == {"vjp_blocks"} and seconds["vjp_blocks"] > 0
@@ -58,7 +58,7 @@ def test_compiled_drivers_start_nothing_and_say_nothing(fresh_state, monkeypatch
 
 def test_compiling_ahead_can_be_switched_off(fresh_state, monkeypatch):
     monkeypatch.setenv(compiling.VARIABLE, "0")
-    monkeypatch.setattr(compiling, "is_compiled", lambda name, dtype: False)
+    monkeypatch.setattr(compiling, "is_compiled", lambda name, dtype, field: False)
     monkeypatch.setattr(compiling.subprocess, "Popen", lambda *a, **k: pytest.fail("started a process"))
     compiling.compile_vjp_ahead(np.float32, stagewise=False)
     assert not compiling._pending

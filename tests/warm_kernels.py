@@ -1,10 +1,10 @@
-"""Compile the engine's four drivers (rollout and VJP, block and stagewise) for one dtype into
-numba's on-disk cache:  python tests/warm_kernels.py float32
+"""Compile the engine's four drivers (rollout and VJP, block and stagewise) for one dtype and each
+field (MP-NODE, L2S) into numba's on-disk cache:  python tests/warm_kernels.py float32
 
 tests/conftest.py runs this once per dtype, the two at once, the first time a test calls the
 compiled kernels (see "Compiling the kernels on both cores" there).  Every model kind and size
-runs the same compiled driver for a dtype, so one tiny rollout and VJP per driver compiles
-everything the suite calls.
+of a field runs the same compiled driver for a dtype, so one tiny rollout and VJP per driver
+and field compiles everything the suite calls.
 """
 import os
 import sys
@@ -20,17 +20,18 @@ CANNOT_LOCK = 3
 
 
 def warm(dtype):
-    """One rollout and one VJP through each driver in ``dtype``."""
+    """One rollout and one VJP through each driver in ``dtype``, for each field."""
     from mpnode.base.graph import Graph
     from mpnode.engine import forward_with_vjp
     from mpnode.model import Model
 
-    model = Model.create(state_dim=2, message_dim=2, hidden=4, dt=0.1)
-    theta = model.theta.astype(dtype)
     graph = Graph.from_edges(3, [(0, 1), (1, 2)])
-    for driver in ("blocks", "stagewise"):
-        x, vjp = forward_with_vjp(model.spec, theta, np.zeros((3, 2)), graph, None, 1, driver=driver)
-        vjp(np.zeros_like(x))
+    for model in (Model.create(state_dim=2, message_dim=2, hidden=4, dt=0.1),
+                  Model.create(state_dim=2, hidden=4, dt=0.1, kind="l2s")):
+        theta = model.theta.astype(dtype)
+        for driver in ("blocks", "stagewise"):
+            x, vjp = forward_with_vjp(model.spec, theta, np.zeros((3, 2)), graph, None, 1, driver=driver)
+            vjp(np.zeros_like(x))
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
-"""Where the work runs: numba's thread pool with BLAS pinned to one thread inside it, or the
-NumPy path when numba cannot be imported."""
+"""Where the work runs: threads (the calling thread and a pool for blocks of nodes, numba's own
+pool for one large graph) with BLAS pinned to one thread, or the NumPy path when numba cannot be
+imported."""
 import contextlib
 
 # ---------------------------------------------------------------------------
@@ -36,6 +37,48 @@ def n_threads():
     import numba
 
     return numba.get_num_threads()
+
+
+_pool = None  # the threads that run blocks beside the calling thread
+_pool_size = 0
+
+
+def run_blocks(run, n_blocks):
+    """``run(b0, b1)`` for blocks 0..n_blocks, one block per call, on up to `n_threads` threads:
+    the calling thread takes the first block, a pool of threads the others.  ``run`` must release
+    the GIL (the block drivers are compiled with nogil).  Blocks write disjoint rows, so the
+    results do not depend on which thread ran which block; an exception in any block is raised
+    here, once every block has ended."""
+    global _pool, _pool_size
+    workers = min(n_blocks, n_threads()) - 1
+    if workers <= 0:
+        run(0, n_blocks)
+        return
+    if workers > _pool_size:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _pool, _pool_size = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mpnode-blocks"), workers
+    futures = [_pool.submit(run, b, b + 1) for b in range(1, n_blocks)]
+    try:
+        run(0, 1)
+    finally:  # even on Ctrl-C: no thread may write into the caller's arrays once this returns
+        _wait_all(futures)
+    for f in futures:
+        f.result()
+
+
+def _wait_all(futures):
+    """Wait for every future; a Ctrl-C meanwhile is raised once they have all ended."""
+    interrupted = False
+    for f in futures:
+        while True:
+            try:
+                f.exception()
+                break
+            except KeyboardInterrupt:
+                interrupted = True
+    if interrupted:
+        raise KeyboardInterrupt
 
 
 # ---------------------------------------------------------------------------

@@ -11,9 +11,9 @@ of one function at once can lose an entry or leave one naming the other's code (
 4807): both processes' cache writes take turns (`serialise_cache_writes`), and where that cannot
 be done (no fcntl) everything compiles here, in turn.
 
-`set_announcer` lets the command line say what is happening ("compiling the kernels for float32,
-once: ~N s"); the library itself prints nothing.  MPNODE_COMPILE_AHEAD=0 keeps every compile in
-this process.
+`set_announcer` lets the command line say what is happening ("compiling the MP-NODE kernels for
+float32, once: ~N s"); the library itself prints nothing.  MPNODE_COMPILE_AHEAD=0 keeps every
+compile in this process.
 """
 import json
 import os
@@ -28,50 +28,53 @@ from mpnode.base.atomic import atomic_path
 VARIABLE = "MPNODE_COMPILE_AHEAD"
 #: seconds a first run waits for its compile on a 2-core machine (docs/evidence/cold-start.md), until this
 #: machine has its own figure
-DEFAULT_SECONDS = 180.0
+DEFAULT_SECONDS = 100.0
 _TIMES_FILE = "mpnode-compile-seconds.json"
+_FIELD_NAMES = {"mpnode": "MP-NODE", "l2s": "L2S"}
 
 _announce = None
-_announced = set()  # the precisions whose compile was announced in this process
-_known = set()  # (driver, dtype) compiled or loaded in this process
-_pending = {}  # (driver, dtype) -> (process, start time)
+_announced = set()  # the (dtype, field) whose compile was announced in this process
+_known = set()  # (driver, dtype, field) compiled or loaded in this process
+_pending = {}  # (driver, dtype, field) -> (process, start time)
 _lock_path = None  # the file every cache write of this process locks, once `serialise_cache_writes` ran
 
 
 def set_announcer(fn):
-    """``fn(message)`` is told, once per precision, that the kernels are being compiled (None: silence)."""
+    """``fn(message)`` is told, once per precision and field, that the kernels are being compiled
+    (None: silence)."""
     global _announce
     _announce = fn
 
 
-def before_call(name, dtype):
-    """Called before each call of driver ``name`` in ``dtype``: wait for its compile in the other
-    process if one runs, and announce a compile here the first time it has to happen."""
-    key = (name, np.dtype(dtype).name)
+def before_call(name, dtype, field="mpnode"):
+    """Called before each call of driver ``name`` in ``dtype`` for ``field`` ("mpnode" or "l2s",
+    compiled apart: `kernels.rk4`): wait for its compile in the other process if one runs, and
+    announce a compile here the first time it has to happen."""
+    key = (name, np.dtype(dtype).name, field)
     if key in _known:
         return
     _wait(key)
-    if not is_compiled(name, dtype) and _announce is not None and key[1] not in _announced:
-        _announced.add(key[1])
-        _announce(f"compiling the kernels for {key[1]}, once: ~{estimate():.0f} s")
+    if not is_compiled(name, dtype, field) and _announce is not None and key[1:] not in _announced:
+        _announced.add(key[1:])
+        _announce(f"compiling the {_FIELD_NAMES[field]} kernels for {key[1]}, once: ~{estimate():.0f} s")
     _known.add(key)
 
 
-def compile_vjp_ahead(dtype, stagewise):
-    """Start compiling the VJP driver for ``dtype`` in another process unless it is compiled
-    (or ahead-compiling is switched off): the caller goes on to compile the rollout."""
+def compile_vjp_ahead(dtype, stagewise, field="mpnode"):
+    """Start compiling the VJP driver for ``dtype`` and ``field`` in another process unless it is
+    compiled (or ahead-compiling is switched off): the caller goes on to compile the rollout."""
     name = "vjp_stagewise" if stagewise else "vjp_blocks"
-    key = (name, np.dtype(dtype).name)
+    key = (name, np.dtype(dtype).name, field)
     if key in _known or key in _pending or os.environ.get(VARIABLE, "1") == "0":
         return
-    if is_compiled(name, dtype):
+    if is_compiled(name, dtype, field):
         _known.add(key)
         return
     if not serialise_cache_writes():
         return
     try:  # a failure there only means this process compiles the VJP itself: nothing to show
         proc = subprocess.Popen([sys.executable, "-m", "mpnode.engine.precompile", key[1],
-                                 "stagewise" if stagewise else "blocks"],
+                                 "stagewise" if stagewise else "blocks", field],
                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError:  # no interpreter to start (an embedded Python): compile here, in turn
         return
@@ -113,20 +116,25 @@ def _wait(key):
         _record(key[0], time.perf_counter() - t0)
 
 
-def is_compiled(name, dtype):
-    """Is driver ``name`` compiled for ``dtype`` in this process or in numba's on-disk cache?"""
+def is_compiled(name, dtype, field="mpnode"):
+    """Is driver ``name`` compiled for ``dtype`` and ``field`` in this process or in numba's
+    on-disk cache?"""
     from numba import types
 
     from .kernels import rk4
 
     disp = getattr(rk4, name)
     want = types.float32 if np.dtype(dtype) == np.float32 else types.float64
-    if any(sig[0].dtype == want for sig in disp.signatures):
+
+    def match(sig):  # (theta, dims, l2s, ...): l2s is None for the MP-NODE field, an int64 for L2S
+        return sig[0].dtype == want and isinstance(sig[2], types.NoneType) == (field == "mpnode")
+
+    if any(match(sig) for sig in disp.signatures):
         return True
     try:
         magic = disp.targetctx.codegen().magic_tuple()
         index = disp._cache._cache_file._load_index()
-        return any(key[1] == magic and key[0][0].dtype == want for key in index)
+        return any(key[1] == magic and match(key[0]) for key in index)
     except Exception:  # numba's cache layout is private: when it cannot be read, assume a compile
         return False
 

@@ -1,5 +1,5 @@
-"""The process `compiling.compile_vjp_ahead` starts: ``python -m mpnode.engine.precompile float32 blocks``
-compiles one VJP driver into numba's on-disk cache and exits."""
+"""The process `compiling.compile_vjp_ahead` starts: ``python -m mpnode.engine.precompile float32 blocks
+mpnode`` compiles one VJP driver, for one field ("mpnode" or "l2s"), into numba's on-disk cache and exits."""
 import sys
 
 import numpy as np
@@ -14,11 +14,11 @@ from .schedule import time_grid
 from .spec import FieldSpec, checked_controls
 
 
-def compile_vjp(dtype, driver):
-    """One tiny VJP through driver ``"blocks"`` or ``"stagewise"`` in ``dtype``, from stand-in
-    states (the reverse pass's types are all that matter here): numba compiles the VJP driver
-    and its callees into the on-disk cache, and the rollout driver is never called."""
-    spec = FieldSpec(state_dim=2, message_dim=2, hidden=4, dt=0.1)
+def compile_vjp(dtype, driver, field="mpnode"):
+    """One tiny VJP of ``field`` through driver ``"blocks"`` or ``"stagewise"`` in ``dtype``, from
+    stand-in states (the reverse pass's types are all that matter here): numba compiles the VJP
+    driver and its callees into the on-disk cache, and the rollout driver is never called."""
+    spec = FieldSpec(kind=field, state_dim=2, message_dim=2 if field == "mpnode" else 0, hidden=4, dt=0.1)
     theta = np.zeros(n_params(spec), dtype)
     graph = Graph.from_edges(3, [(0, 1), (1, 2)])
     plan = plan_for(graph, spec, theta.dtype, driver)
@@ -32,4 +32,4 @@ def compile_vjp(dtype, driver):
 
 if __name__ == "__main__":
     serialise_cache_writes()
-    compile_vjp(np.dtype(sys.argv[1]), sys.argv[2])
+    compile_vjp(np.dtype(sys.argv[1]), sys.argv[2], sys.argv[3])

@@ -24,7 +24,8 @@ import numpy as np
 from mpnode.base.graph import Graph
 
 from . import compiling
-from .backend import resolve_backend, single_threaded_blas
+from .backend import resolve_backend, run_blocks, single_threaded_blas
+from .dims import KIND, L2S
 from .plan import plan_for
 from .schedule import time_grid
 from .spec import checked_controls
@@ -72,6 +73,12 @@ def _edgeless(n):
     return Graph(np.zeros(n + 1, dtype=np.int64), np.zeros(0, dtype=np.int64))
 
 
+def _field(spec):
+    """The kernels' field marker for ``spec`` and the field's name for `compiling` (each field's
+    drivers compile apart: `kernels.rk4`)."""
+    return (1, "l2s") if spec.dims[KIND] == L2S else (None, "mpnode")
+
+
 def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, intervals):
     """The forward rollout from the full state z0: (x (n_steps+1, M, dx) and z at the end in
     the user's node order, states, the kept stage caches (None for one large graph) and u,
@@ -95,16 +102,18 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
     zend = np.empty_like(z0)
     g = plan.kernel_graph()
     kept = None
+    l2s, field = _field(spec)
     if keep_states:  # a VJP follows: its driver compiles on the other core while this one compiles the rollout's
-        compiling.compile_vjp_ahead(theta.dtype, plan.blocks is None)
-    compiling.before_call("rollout_stagewise" if plan.blocks is None else "rollout_blocks", theta.dtype)
+        compiling.compile_vjp_ahead(theta.dtype, plan.blocks is None, field)
+    compiling.before_call("rollout_stagewise" if plan.blocks is None else "rollout_blocks", theta.dtype, field)
     with single_threaded_blas():
         if plan.blocks is None:
-            kernels.rollout_stagewise(theta, spec.dims, z0, u, g, nsub, hstep, out, states, zend)
+            kernels.rollout_stagewise(theta, spec.dims, l2s, z0, u, g, nsub, hstep, out, states, zend)
         else:
             kept = _stage_caches(spec, n_states - 1, m, theta)
-            kernels.rollout_blocks(theta, spec.dims, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off,
-                                   plan.dense_A, nsub, hstep, out, states, zend, kept)
+            run_blocks(lambda b0, b1: kernels.rollout_blocks(
+                theta, spec.dims, l2s, b0, b1, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off, plan.dense_A,
+                nsub, hstep, out, states, zend, kept), len(plan.blocks) - 1)
     return plan.to_user_order(out), states, kept, plan.to_user_order(zend[None])[0], u, (nsub, hstep), plan
 
 
@@ -269,7 +278,7 @@ def compile_vjp_ahead(spec, dtype, graph, driver="auto", ordering="auto"):
     not compiled yet, while this process goes on (a training run's first validation, say)."""
     if spec.kind == "node":
         spec, _, _, graph = _whole_systems(spec, np.zeros((graph.n_nodes, spec.state_dim)), None, graph)
-    compiling.compile_vjp_ahead(dtype, plan_for(graph, spec, dtype, driver, ordering).blocks is None)
+    compiling.compile_vjp_ahead(dtype, plan_for(graph, spec, dtype, driver, ordering).blocks is None, _field(spec)[1])
 
 
 def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False, edge_weights=False):
@@ -291,13 +300,15 @@ def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False, edge_
     gw = np.zeros(plan.csr.n_edges if edge_weights else 0, dtype=theta.dtype)
     g, gt = plan.kernel_graph(), plan.kernel_transposed()
     nsub, hstep = grid
-    compiling.before_call("vjp_stagewise" if plan.blocks is None else "vjp_blocks", theta.dtype)
+    l2s, field = _field(spec)
+    compiling.before_call("vjp_stagewise" if plan.blocks is None else "vjp_blocks", theta.dtype, field)
     with single_threaded_blas():
         if plan.blocks is None:
-            kernels.vjp_stagewise(theta, spec.dims, u, g, gt, nsub, hstep, states, gx, gthetas, gx0, gu)
+            kernels.vjp_stagewise(theta, spec.dims, l2s, u, g, gt, nsub, hstep, states, gx, gthetas, gx0, gu)
         else:
-            kernels.vjp_blocks(theta, spec.dims, u, g, gt, plan.blocks, plan.dense_n, plan.dense_off,
-                               plan.dense_A, plan.dense_AT, nsub, hstep, states, kept, gx, gthetas, gx0, gu, gw)
+            run_blocks(lambda b0, b1: kernels.vjp_blocks(
+                theta, spec.dims, l2s, b0, b1, u, g, gt, plan.blocks, plan.dense_n, plan.dense_off, plan.dense_A,
+                plan.dense_AT, nsub, hstep, states, kept, gx, gthetas, gx0, gu, gw), len(plan.blocks) - 1)
     if plan.order is not None:
         gx0[plan.order] = gx0.copy()
     gtheta = gthetas.sum(axis=0, dtype=theta.dtype)[:n_params]

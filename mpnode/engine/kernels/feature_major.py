@@ -57,7 +57,7 @@ def _partial_product(width):
 _P8, _P4, _P2, _P1 = (_partial_product(w) for w in CHUNKS)
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def _chunk(width, W, b, XT, k0, YT, first):
     if width == 8:
         _P8(W, b, XT, k0, YT, first)
@@ -74,7 +74,7 @@ def product(W, b, XT, YT, act=False):
     """YT (c, n) = W^T XT + b, then tanh if ``act``, for W (a, c), XT (a, n); b may be
     empty (no bias).  ``W`` may be a transposed view (the backward pass multiplies by W itself)."""
     a = W.shape[0]
-    k0 = 0
+    k0 = a - a  # an int64 from the start: a literal 0 would have numba compile every chunk twice
     while k0 < a:
         width = CHUNKS[0]
         while width > a - k0:
@@ -88,7 +88,7 @@ def product(W, b, XT, YT, act=False):
                 YT[j, r] = tanh(YT[j, r])
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def dense_tanh_forward(XT, W, b, YT):
     """YT = tanh(W^T XT + b): the hidden layer, feature-major."""
     product(W, b, XT, YT, True)

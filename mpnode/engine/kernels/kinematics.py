@@ -8,7 +8,7 @@ from ..dims import HEADER, KINEMATICS, PAIR_WIDTH, QUATERNION_WIDTH
 from .layers import JIT
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def constants(theta, dims):
     return theta[theta.shape[0] - dims[KINEMATICS]:]
 

@@ -305,7 +305,7 @@ def transpose_tile(g, tindptr, tindices, tew, self_msg, i0, i1, zoff, out, ocol0
     cotangent; the CSR transpose (tindptr, tindices) lists, for sender j, who hears it, and
     ``tew`` the weights of those edges (empty: all 1).
     """
-    aggregate_tile(g, 0, g.shape[1], np.empty((0, 0), g.dtype), tindptr, tindices, tew, np.empty(0, g.dtype),
+    aggregate_tile(g, np.int64(0), g.shape[1], np.empty((0, 0), g.dtype), tindptr, tindices, tew, np.empty(0, g.dtype),
                    self_msg, i0, i1, zoff, out[i0 - zoff:i1 - zoff], ocol0)
 
 

@@ -19,7 +19,7 @@ from .feature_major import aligned_empty, dense_tanh_forward, param_cotangent, p
 from .layers import JIT, aggregate_tile
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def unpack(theta, din, H, dout):
     """Views (W1, b1, W2, b2, W3, b3) into the flat parameter vector ``theta``."""
     o = 0
@@ -37,7 +37,7 @@ def unpack(theta, din, H, dout):
     return W1, b1, W2, b2, W3, b3
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def unpack_agg(theta, din, H, dout, dm, ncol):
     """The view W_agg (dm, ncol) that follows the MLP's parameters in ``theta`` (ncol: dout,
     or dx when the path feeds dx/dt alone)."""
@@ -45,13 +45,13 @@ def unpack_agg(theta, din, H, dout, dm, ncol):
     return theta[o:o + dm * ncol].reshape(dm, ncol)
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def feature_major(A):
     """The (w, n) feature-major view of a tile's (n, w) cache rows (the same memory)."""
     return A.reshape(A.shape[1], A.shape[0])
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def transpose_into(A, B):
     """B (w, n) = A (n, w)^T."""
     for d in range(B.shape[0]):
@@ -59,7 +59,7 @@ def transpose_into(A, B):
             B[d, r] = A[r, d]
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def linear_input(VT, c, weight, own, i0):
     """The linear path's input for rows i0..: VT[c:] (the MLP's aggregate, feature-major), each
     node r times weight[M + i0 + r] when the path has its ``own`` aggregation (M = weight.size / 2)."""
@@ -73,7 +73,7 @@ def linear_input(VT, c, weight, own, i0):
     return AT
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def linear_aggregate_forward(Wa, VT, c, weight, own, i0, KT):
     """KT[:ncol] += Wa^T A (ncol = Wa's columns), A = linear_input(...): the aggregate's path
     around the MLP (whose tanh units cannot follow the larger aggregates of denser graphs;
@@ -84,7 +84,7 @@ def linear_aggregate_forward(Wa, VT, c, weight, own, i0, KT):
     KT[:ncol] += PT
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def linear_aggregate_backward(Wa, VT, c, weight, own, i0, GKT, gWa, GVT):
     """VJP of linear_aggregate_forward: gWa += A G^T, GVT[c:] += s * (Wa G), G = GKT[:ncol]."""
     GT = GKT[:Wa.shape[1]]
@@ -99,7 +99,7 @@ def linear_aggregate_backward(Wa, VT, c, weight, own, i0, GKT, gWa, GVT):
     GVT[c:] += GAT
 
 
-@njit(**JIT)
+@njit(inline="always", **JIT)
 def mlp_forward(theta, VT, H1T, H2T, dout):
     """KT (dout, n) = W3^T tanh(W2^T tanh(W1^T v + b1) + b2) + b3 per column v of VT; keeps H1T, H2T."""
     W1, b1, W2, b2, W3, b3 = unpack(theta, VT.shape[0], H1T.shape[0], dout)
@@ -154,7 +154,10 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
     if zero_msg:
         VT[c:] = 0
     else:
-        aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, ew, weight, self_msg, i0, i1, zoff, VT[c:].T, 0)
+        # node-major rows, as the reverse pass's transpose writes them: one compiled aggregate_tile serves both
+        AG = aligned_empty((n, dm), VT)
+        aggregate_tile(msrc, mcol0, dm, sums, indptr, indices, ew, weight, self_msg, i0, i1, zoff, AG, np.int64(0))
+        transpose_into(AG, VT[c:])
     KT = mlp_forward(theta, VT, feature_major(H1), feature_major(H2), dx + dm)
     if linear_agg:
         ncol = dx if linear_agg & LINEAR_STATE else dx + dm
