@@ -621,3 +621,47 @@ def test_gradient_is_bit_identical_across_calls(driver, dtype):
         np.testing.assert_array_equal(again[2], first[2])
     r1 = engine.forward(spec, theta, x0, graph, u, T)
     np.testing.assert_array_equal(engine.forward(spec, theta, x0, graph, u, T), r1)
+
+
+# ---------------------------------------------------------------------------
+# 11. Blocks go to whichever thread is free
+# ---------------------------------------------------------------------------
+def _record_blocks(seconds_on_calling_thread, fail_at=None):
+    """A stand-in for a block driver (time.sleep releases the GIL, as the drivers do): the blocks
+    each thread ran, in ``ran``; the calling thread is slow."""
+    import threading
+    import time
+
+    caller, ran = threading.current_thread(), []
+
+    def run(b0, b1):
+        ran.append((threading.current_thread() is caller, b0, b1))
+        time.sleep(seconds_on_calling_thread if threading.current_thread() is caller else 0.005)
+        if b0 == fail_at:
+            raise ValueError("block failed")
+
+    return run, ran
+
+
+def test_a_slow_thread_takes_fewer_blocks(monkeypatch):
+    from mpnode.engine import backend
+
+    monkeypatch.setattr(backend, "n_threads", lambda: 2)
+    run, ran = _record_blocks(0.25)
+    backend.run_blocks(run, 8)
+    assert sorted(b for _, b, _ in ran) == list(range(8)) and all(b1 == b0 + 1 for _, b0, b1 in ran)
+    assert sum(on_caller for on_caller, _, _ in ran) == 1  # the other thread ran the other seven meanwhile
+
+
+def test_a_failed_block_is_raised_once_every_thread_has_stopped(monkeypatch):
+    import time
+
+    from mpnode.engine import backend
+
+    monkeypatch.setattr(backend, "n_threads", lambda: 2)
+    run, ran = _record_blocks(0.05, fail_at=0)
+    with pytest.raises(ValueError, match="block failed"):
+        backend.run_blocks(run, 40)
+    after = len(ran)
+    time.sleep(0.05)
+    assert len(ran) == after < 40  # nothing runs after the call returned, and no new block once one failed

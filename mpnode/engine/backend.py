@@ -2,9 +2,11 @@
 pool for one large graph) with BLAS pinned to one thread, or the NumPy path when numba cannot be
 imported."""
 import contextlib
+import threading
 
 # ---------------------------------------------------------------------------
-# Threads: numba's pool does the parallel work; BLAS runs single-threaded inside it.
+# Threads: blocks on the calling thread and a pool (`run_blocks`), one large graph on numba's
+# pool; BLAS runs single-threaded inside either.
 # ---------------------------------------------------------------------------
 _blas_libs = None
 
@@ -44,27 +46,48 @@ _pool_size = 0
 
 
 def run_blocks(run, n_blocks):
-    """``run(b0, b1)`` for blocks 0..n_blocks, one block per call, on up to `n_threads` threads:
-    the calling thread takes the first block, a pool of threads the others.  ``run`` must release
-    the GIL (the block drivers are compiled with nogil).  Blocks write disjoint rows, so the
-    results do not depend on which thread ran which block; an exception in any block is raised
-    here, once every block has ended."""
-    global _pool, _pool_size
+    """``run(b0, b1)`` for blocks 0..n_blocks on up to `n_threads` threads: the calling thread and a
+    pool of threads each take the next block not yet taken until none is left (a Plan cuts a batch
+    into one block per thread, more where its graphs change), so a thread slowed down by another
+    process takes fewer blocks.  ``run`` must
+    release the GIL (the block drivers are compiled with nogil).  Blocks write disjoint rows and
+    their own partial sums, so the results do not depend on which thread ran which block; an
+    exception in any block is raised here, once every thread has stopped."""
     workers = min(n_blocks, n_threads()) - 1
     if workers <= 0:
         run(0, n_blocks)
         return
-    if workers > _pool_size:
-        from concurrent.futures import ThreadPoolExecutor
+    blocks, lock, stopped = iter(range(n_blocks)), threading.Lock(), []
 
-        _pool, _pool_size = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mpnode-blocks"), workers
-    futures = [_pool.submit(run, b, b + 1) for b in range(1, n_blocks)]
+    def take_blocks():
+        try:
+            while not stopped:
+                with lock:
+                    b = next(blocks, None)
+                if b is None:
+                    return
+                run(b, b + 1)
+        except BaseException:  # a failed block, or Ctrl-C: no thread takes another
+            stopped.append(True)
+            raise
+
+    futures = [_threads(workers).submit(take_blocks) for _ in range(workers)]
     try:
-        run(0, 1)
+        take_blocks()
     finally:  # even on Ctrl-C: no thread may write into the caller's arrays once this returns
         _wait_all(futures)
     for f in futures:
         f.result()
+
+
+def _threads(workers):
+    """The pool, grown to ``workers`` threads if it has fewer."""
+    global _pool, _pool_size
+    if workers > _pool_size:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _pool, _pool_size = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mpnode-blocks"), workers
+    return _pool
 
 
 def _wait_all(futures):

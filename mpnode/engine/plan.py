@@ -55,8 +55,7 @@ class Plan:
     transposed : Graph -- the CSR transpose of ``csr`` (computed on first use, for the adjoint)
     """
 
-    def __init__(self, graph, n_threads, self_messages, dtype, aggregation, driver="auto",
-                 blocks_per_thread=1, ordering="auto"):
+    def __init__(self, graph, n_threads, self_messages, dtype, aggregation, driver="auto", ordering="auto"):
         self.blocks = None
         self.order = None
         self.csr = Graph(graph.indptr, graph.indices, weights=graph.weights)  # the cache holds the graph weakly
@@ -70,7 +69,7 @@ class Plan:
         if graph.parts is None or len(parts) == 1:
             pieces = closed_pieces(graph)
             parts, sizes = (None,) * (len(pieces) - 1), np.diff(pieces)
-        n_blocks = max(1, n_threads * blocks_per_thread)
+        n_blocks = max(1, n_threads)
         too_big = m >= STAGEWISE_MIN_NODES_PER_THREAD * n_threads and sizes.max(initial=0) > m / n_blocks
         if driver == "stagewise" or (driver == "auto" and too_big):
             if ordering != "none":  # one graph too big to split: stagewise, in a cache-friendly order
