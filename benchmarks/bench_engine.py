@@ -10,7 +10,9 @@ forward) -- and our ratio to it.  Medians of >= 7 timed calls after warm-up; flo
 recomputed in the reverse pass, over the step with the forward's stage caches kept (the
 engine's choice up to rollout.KEEP_CACHES_BYTES), measured in the same process.  Each JSON row
 names its machine (``machine``: the CPU's model and vector extensions, the BLAS, the threads)
-beside the GEMM rate it was measured against.
+beside the GEMM rate it was measured against, and ``host_probe_gflops``: the median rate of a
+small one-core SGEMM timed between the timed calls (`host_probe`), which tells a case slowed by the
+host (a shared machine's cores change speed by themselves) from one slowed by the engine.
 
 Large graphs (rollout only, B = 1, T = 50; each case in a fresh process so that its
 memory peak is its own): R200k and S6, random 6-regular graphs of 200,000 and 1,000,000
@@ -26,6 +28,7 @@ dense layers alone, and one thread.
     python benchmarks/bench_engine.py [--json] [--cases S1,S2] [--kinds mpnode,l2s] [--dtype float32,float64]
                                       [--batch B]
     python benchmarks/bench_engine.py --cases S5,R200k,S6,L6,L6-none --kinds mpnode [--profile]
+    python benchmarks/bench_engine.py --host-probe 60
 """
 import argparse
 import json
@@ -125,8 +128,9 @@ CASES = {
 H, T, DT = 32, 50, 0.05
 
 
-def timed(call, n_min=7, min_total_s=3.0, max_reps=30, warm=True):
-    """First call (compile or cache load + run), one more warm-up, then >= n_min timed calls (ms)."""
+def timed(call, n_min=7, min_total_s=3.0, max_reps=30, warm=True, probes=None):
+    """First call (compile or cache load + run), one more warm-up, then >= n_min timed calls (ms).
+    ``probes``: a list that receives a `host_probe` after each timed call."""
     t0 = time.perf_counter()
     call()
     first = time.perf_counter() - t0
@@ -138,7 +142,23 @@ def timed(call, n_min=7, min_total_s=3.0, max_reps=30, warm=True):
         t0 = time.perf_counter()
         call()
         times.append(1e3 * (time.perf_counter() - t0))
+        if probes is not None:
+            probes.append(host_probe())
     return first, statistics.median(times), times
+
+
+_PROBE = np.random.default_rng(3).random((256, 256)).astype(np.float32)
+
+
+def host_probe(reps=8):
+    """GFLOP/s of a fixed one-core SGEMM that stays in cache, now.  On a shared (virtual) host
+    the cores' speed changes by itself over seconds; this rate, taken between a case's calls,
+    says which speed the case ran at."""
+    a = _PROBE
+    _blas_pinned(lambda: [a @ a for _ in range(reps)])
+    t0 = time.perf_counter()
+    _blas_pinned(lambda: [a @ a for _ in range(reps)])
+    return reps * 2 * a.shape[0] ** 3 / (time.perf_counter() - t0) / 1e9
 
 
 def gemm_gflops(dtype, n=2048, reps=5):
@@ -207,11 +227,13 @@ def run_case(case, kind, dtype, gflops, profile=False, batch=None):
     rss_before = _status_mb("VmRSS")
     exact_peak = reset_peak()
     reps = dict(n_min=3, min_total_s=0, warm=False) if big else {}
-    first_r, roll, _ = timed(lambda: forward(spec, theta, x[0], graph, n_steps=T, ordering=ordering), **reps)
+    probes = []
+    first_r, roll, _ = timed(lambda: forward(spec, theta, x[0], graph, n_steps=T, ordering=ordering), probes=probes,
+                             **reps)
     peak = _status_mb("VmHWM")
     train = first_t = recomputed = float("nan")
     if not big:
-        first_t, train, _ = timed(lambda: value_and_grad(spec, theta, x, graph))
+        first_t, train, _ = timed(lambda: value_and_grad(spec, theta, x, graph), probes=probes)
         recomputed = train_recomputing(lambda: value_and_grad(spec, theta, x, graph))
     fl = 2 * macs_per_node(case, kind) * 4 * T * m / (gflops * 1e9) * 1e3
     r = {"case": case, "label": c["label"], "kind": kind, "dtype": np.dtype(dtype).name, "nodes": m,
@@ -223,6 +245,7 @@ def run_case(case, kind, dtype, gflops, profile=False, batch=None):
          "rollout_ratio": round(roll / fl, 2), "train_ratio": round(train / (3 * fl), 2),
          "train_recomputed_ms": round(recomputed, 3), "recomputed_over_kept": round(recomputed / train, 2),
          "first_call_s": round(max(first_r, first_t) if not big else first_r, 2),
+         "host_probe_gflops": round(statistics.median(probes), 1),
          "rss_before_mb": round(rss_before), "peak_rss_mb": round(peak) if exact_peak else None,
          "rollout_output_mb": round(x.nbytes / 2**20), "machine": machine()}
     if profile:
@@ -318,6 +341,16 @@ def print_row(r):
               f"{r['dense_ms']:.0f}, rest {r['rest_ms']:.0f}; one thread {r['one_thread_ms']:.0f} ms", flush=True)
 
 
+def watch_host(seconds):
+    """Print `host_probe` every half second, and the spread of the rates (max / min)."""
+    rates, start = [], time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        rates.append(host_probe())
+        print(f"{time.perf_counter() - start:6.1f} s  {rates[-1]:6.1f} GFLOP/s", flush=True)
+        time.sleep(0.5)
+    print(f"one-core SGEMM: median {statistics.median(rates):.1f} GFLOP/s, max / min {max(rates) / min(rates):.2f}")
+
+
 def main():
     ask_for_wide_vectors()  # as the `mpnode` command compiles the kernels (MPNODE_WIDE_VECTORS=0: numba's default)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -327,8 +360,13 @@ def main():
     ap.add_argument("--profile", action="store_true", help="split the large cases' rollout time (see above)")
     ap.add_argument("--json", action="store_true", help="one JSON object per case")
     ap.add_argument("--batch", type=int, help="graphs per batch instead of each case's B (S1-S4)")
+    ap.add_argument("--host-probe", type=float, metavar="SECONDS",
+                    help="only time `host_probe` every half second for this long: does this machine change speed?")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: one case, JSON, in this process
     args = ap.parse_args()
+    if args.host_probe:
+        watch_host(args.host_probe)
+        return
     if args.one:
         dtype = np.dtype(args.dtype)
         print(json.dumps(run_case(args.one, args.kinds, dtype, gemm_gflops(dtype), args.profile)))
