@@ -21,13 +21,15 @@ whose nodes are numbered at random (a graph with locality, as a user's file may 
 it), run with the engine's locality ordering and without it (L6-none).  Peak memory is
 the process's resident-set high-water mark (Linux VmHWM) over the rollouts, reset just
 before them, so it counts everything resident -- Python, the kernels, the graph, the
-rollout -- but not building the graph.  ``--profile`` splits the large cases' time:
+rollout -- but not building the graph.  ``--train-big`` also times their training step (two
+calls, the stages recomputed as the engine does at that size) with its own memory peak.
+``--profile`` splits the large cases' time:
 the rollout without neighbour sums (zero_messages: same dense work, no gather), the
 dense layers alone, and one thread.
 
     python benchmarks/bench_engine.py [--json] [--cases S1,S2] [--kinds mpnode,l2s] [--dtype float32,float64]
                                       [--batch B]
-    python benchmarks/bench_engine.py --cases S5,R200k,S6,L6,L6-none --kinds mpnode [--profile]
+    python benchmarks/bench_engine.py --cases S5,R200k,S6,L6,L6-none --kinds mpnode [--profile] [--train-big]
     python benchmarks/bench_engine.py --host-probe 60
 """
 import argparse
@@ -213,7 +215,7 @@ def reset_peak():
         return False
 
 
-def run_case(case, kind, dtype, gflops, profile=False, batch=None):
+def run_case(case, kind, dtype, gflops, profile=False, batch=None, train_big=False):
     c = CASES[case]
     big = c.get("big", False)
     spec = spec_for(case, kind)
@@ -231,10 +233,7 @@ def run_case(case, kind, dtype, gflops, profile=False, batch=None):
     first_r, roll, _ = timed(lambda: forward(spec, theta, x[0], graph, n_steps=T, ordering=ordering), probes=probes,
                              **reps)
     peak = _status_mb("VmHWM")
-    train = first_t = recomputed = float("nan")
-    if not big:
-        first_t, train, _ = timed(lambda: value_and_grad(spec, theta, x, graph), probes=probes)
-        recomputed = train_recomputing(lambda: value_and_grad(spec, theta, x, graph))
+    first_t, train, recomputed, train_peak = time_training(spec, theta, x, graph, big, train_big, probes)
     fl = 2 * macs_per_node(case, kind) * 4 * T * m / (gflops * 1e9) * 1e3
     r = {"case": case, "label": c["label"], "kind": kind, "dtype": np.dtype(dtype).name, "nodes": m,
          "edges": graph.n_edges, "ordering": ordering,
@@ -246,11 +245,29 @@ def run_case(case, kind, dtype, gflops, profile=False, batch=None):
          "train_recomputed_ms": round(recomputed, 3), "recomputed_over_kept": round(recomputed / train, 2),
          "first_call_s": round(max(first_r, first_t) if not big else first_r, 2),
          "host_probe_gflops": round(statistics.median(probes), 1),
+         "train_ns_per_node_step": round(train * 1e6 / (m * T), 1),
          "rss_before_mb": round(rss_before), "peak_rss_mb": round(peak) if exact_peak else None,
+         "train_peak_rss_mb": round(train_peak) if train_peak is not None else None,
          "rollout_output_mb": round(x.nbytes / 2**20), "machine": machine()}
     if profile:
         r.update(stage_profile(case, kind, spec, theta, x[0], graph, ordering, roll))
     return r
+
+
+def time_training(spec, theta, x, graph, big, train_big, probes):
+    """(first call s, median ms, median ms recomputing the stages, peak RSS MB or None) of the
+    training step; a large graph's only with ``train_big`` (two calls: minutes), its stages
+    recomputed as the engine does at that size, with the memory peak of the step alone."""
+    nan = float("nan")
+    if big and not train_big:
+        return nan, nan, nan, None
+    step = lambda: value_and_grad(spec, theta, x, graph)  # noqa: E731
+    if big:
+        exact = reset_peak()
+        first, train, _ = timed(step, n_min=2, min_total_s=0, warm=False, probes=probes)
+        return first, train, train, _status_mb("VmHWM") if exact else None
+    first, train, _ = timed(step, probes=probes)
+    return first, train, train_recomputing(step), None
 
 
 def train_recomputing(call):
@@ -321,11 +338,10 @@ def _mlp_sweeps_kernel():
     return sweeps
 
 
-def run_isolated(case, kind, dtype, profile):
+def run_isolated(case, kind, dtype, profile, train_big):
     """run_case in a fresh process (large graphs: the memory peak is the case's own)."""
     cmd = [sys.executable, os.path.abspath(__file__), "--one", case, "--kinds", kind, "--dtype", dtype]
-    if profile:
-        cmd.append("--profile")
+    cmd += ["--profile"] * profile + ["--train-big"] * train_big
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -360,6 +376,8 @@ def main():
     ap.add_argument("--profile", action="store_true", help="split the large cases' rollout time (see above)")
     ap.add_argument("--json", action="store_true", help="one JSON object per case")
     ap.add_argument("--batch", type=int, help="graphs per batch instead of each case's B (S1-S4)")
+    ap.add_argument("--train-big", action="store_true",
+                    help="also time the large graphs' training step (minutes each), with its own memory peak")
     ap.add_argument("--host-probe", type=float, metavar="SECONDS",
                     help="only time `host_probe` every half second for this long: does this machine change speed?")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: one case, JSON, in this process
@@ -369,7 +387,8 @@ def main():
         return
     if args.one:
         dtype = np.dtype(args.dtype)
-        print(json.dumps(run_case(args.one, args.kinds, dtype, gemm_gflops(dtype), args.profile)))
+        print(json.dumps(run_case(args.one, args.kinds, dtype, gemm_gflops(dtype), args.profile,
+                                  train_big=args.train_big)))
         return
     for name in args.dtype.split(","):
         dtype = np.dtype(name)
@@ -381,7 +400,7 @@ def main():
         for case in args.cases.split(","):
             for kind in args.kinds.split(","):
                 if CASES[case].get("big"):
-                    r = run_isolated(case, kind, dtype.name, args.profile)
+                    r = run_isolated(case, kind, dtype.name, args.profile, args.train_big)
                 else:
                     r = run_case(case, kind, dtype, gflops, args.profile and case == "S5", args.batch)
                 if args.json:

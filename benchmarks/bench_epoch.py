@@ -137,7 +137,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--epochs", type=int, default=6)
     ap.add_argument("--data", default=os.path.join(tempfile.gettempdir(), "mpnode-bench-data"))
-    ap.add_argument("--workloads", default=",".join(WORKLOADS), help=f"comma-separated subset of {', '.join(WORKLOADS)}")
+    ap.add_argument("--workloads", default=",".join(WORKLOADS),
+                    help=f"comma-separated subset of {', '.join(WORKLOADS)}")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     os.makedirs(args.data, exist_ok=True)
