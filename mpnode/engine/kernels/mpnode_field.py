@@ -153,6 +153,10 @@ def update_tile(theta, dims, zin, u, sums, graph, i0, i1, zoff, V, H1, H2, msrc,
             VT[dx + d, r] = u[i0 + r, d]
     if zero_msg:
         VT[c:] = 0
+    elif sums.shape[0] > 0:  # the dense path's row sums, weighted straight into the tile
+        for d in range(dm):
+            for r in range(n):
+                VT[c + d, r] = sums[i0 + r - zoff, d] * weight[i0 + r]
     else:
         # node-major rows, as the reverse pass's transpose writes them: one compiled aggregate_tile serves both
         AG = aligned_empty((n, dm), VT)
