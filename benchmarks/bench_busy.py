@@ -28,8 +28,10 @@ def mpnode(cwd, *args, threads=None):
     env = dict(os.environ)
     if threads is not None:
         env["NUMBA_NUM_THREADS"] = str(threads)
-    subprocess.run([sys.executable, "-c", CLI, *args], cwd=cwd, env=env, check=True,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    done = subprocess.run([sys.executable, "-c", CLI, *args], cwd=cwd, env=env, stdout=subprocess.DEVNULL,
+                          stderr=subprocess.PIPE, text=True)
+    if done.returncode:
+        raise RuntimeError(f"mpnode {' '.join(args)} failed: {done.stderr[-2000:]}")
 
 
 def training_seconds(cwd, epochs, threads=None):

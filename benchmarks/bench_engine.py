@@ -21,7 +21,7 @@ whose nodes are numbered at random (a graph with locality, as a user's file may 
 it), run with the engine's locality ordering and without it (L6-none).  Peak memory is
 the process's resident-set high-water mark (Linux VmHWM) over the rollouts, reset just
 before them, so it counts everything resident -- Python, the kernels, the graph, the
-rollout -- but not building the graph.  ``--train-big`` also times their training step (two
+rollout -- but not building the graph.  ``--train-big`` also times their training step (three
 calls, the stages recomputed as the engine does at that size) with its own memory peak.
 ``--profile`` splits the large cases' time:
 the rollout without neighbour sums (zero_messages: same dense work, no gather), the
@@ -256,8 +256,8 @@ def run_case(case, kind, dtype, gflops, profile=False, batch=None, train_big=Fal
 
 def time_training(spec, theta, x, graph, big, train_big, probes):
     """(first call s, median ms, median ms recomputing the stages, peak RSS MB or None) of the
-    training step; a large graph's only with ``train_big`` (two calls: minutes), its stages
-    recomputed as the engine does at that size, with the memory peak of the step alone."""
+    training step; a large graph's only with ``train_big`` (three calls: minutes), which recomputes
+    its stages anyway (no separate figure), with the memory peak of the steps alone."""
     nan = float("nan")
     if big and not train_big:
         return nan, nan, nan, None
@@ -265,7 +265,7 @@ def time_training(spec, theta, x, graph, big, train_big, probes):
     if big:
         exact = reset_peak()
         first, train, _ = timed(step, n_min=2, min_total_s=0, warm=False, probes=probes)
-        return first, train, train, _status_mb("VmHWM") if exact else None
+        return first, train, nan, _status_mb("VmHWM") if exact else None
     first, train, _ = timed(step, probes=probes)
     return first, train, train_recomputing(step), None
 
@@ -382,7 +382,7 @@ def main():
                     help="only time `host_probe` every half second for this long: does this machine change speed?")
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: one case, JSON, in this process
     args = ap.parse_args()
-    if args.host_probe:
+    if args.host_probe is not None:
         watch_host(args.host_probe)
         return
     if args.one:

@@ -68,7 +68,14 @@ class EngineClock:
             self._add("adjoint", t0, spec, states.shape[1], grid[0], factor=2)
             return result
 
+        self._originals = run, reverse
         rollout._run, rollout._reverse = timed_run, timed_reverse
+
+    def close(self):
+        """Put the engine's own entry points back."""
+        from mpnode.engine import rollout
+
+        rollout._run, rollout._reverse = self._originals
 
     def _add(self, part, t0, spec, nodes, substeps, factor=1):
         self.seconds[part] += time.perf_counter() - t0
@@ -113,8 +120,12 @@ def measure(workload, epochs, folder, gflops):
     def progress(record):
         marks.append((time.perf_counter(), *clock.snapshot()))
 
-    with tempfile.TemporaryDirectory() as out:
-        runs.train(files, os.path.join(out, "m.h5"), {"epochs": epochs, **WORKLOADS[workload][2]}, progress=progress)
+    try:
+        with tempfile.TemporaryDirectory() as out:
+            runs.train(files, os.path.join(out, "m.h5"), {"epochs": epochs, **WORKLOADS[workload][2]},
+                       progress=progress)
+    finally:
+        clock.close()
     epochs = [(t1 - t0, {p: s1[p] - s0[p] for p in PARTS}, {p: f1[p] - f0[p] for p in PARTS})
               for (t0, s0, f0), (t1, s1, f1) in zip(marks[1:], marks[2:])]  # from epoch 2: epoch 1 loads the kernels
     wall = statistics.median(w for w, _, _ in epochs)

@@ -142,7 +142,7 @@ def test_the_optimiser_runs_blas_on_one_thread():
 @pytest.fixture
 def one_thread():
     """numba on one thread while the test runs: a control loop of a dozen nodes is too small to
-    share (on a busy machine each parallel region waits for a descheduled thread)."""
+    share between threads."""
     import numba
 
     before = numba.get_num_threads()

@@ -48,11 +48,11 @@ _pool_size = 0
 def run_blocks(run, n_blocks):
     """``run(b0, b1)`` for blocks 0..n_blocks on up to `n_threads` threads: the calling thread and a
     pool of threads each take the next block not yet taken until none is left (a Plan cuts a batch
-    into one block per thread, more where its graphs change), so a thread slowed down by another
-    process takes fewer blocks.  ``run`` must
-    release the GIL (the block drivers are compiled with nogil).  Blocks write disjoint rows and
-    their own partial sums, so the results do not depend on which thread ran which block; an
-    exception in any block is raised here, once every thread has stopped."""
+    into one block per thread, more where its graphs change).  A thread with no block left sleeps
+    instead of spinning at a barrier, so another process keeps its core.  ``run`` must release the
+    GIL (the block drivers are compiled with nogil).  Blocks write disjoint rows and their own
+    partial sums, so the results do not depend on which thread ran which block; an exception in
+    any block is raised here, once every thread has stopped."""
     workers = min(n_blocks, n_threads()) - 1
     if workers <= 0:
         run(0, n_blocks)
@@ -71,9 +71,14 @@ def run_blocks(run, n_blocks):
             stopped.append(True)
             raise
 
-    futures = [_threads(workers).submit(take_blocks) for _ in range(workers)]
+    futures = []
     try:
+        for _ in range(workers):
+            futures.append(_threads(workers).submit(take_blocks))
         take_blocks()
+    except BaseException:  # here, or while submitting: no thread takes another block
+        stopped.append(True)
+        raise
     finally:  # even on Ctrl-C: no thread may write into the caller's arrays once this returns
         _wait_all(futures)
     for f in futures:
