@@ -185,7 +185,7 @@ def test_the_reverse_pass_from_kept_stage_caches_is_the_recomputing_one_bit_for_
     def poisoned_vjp(*args):  # (theta, dims, l2s, b0, b1, ...): called once per block
         kept = args[16]
         assert isinstance(kept, tuple) and len(kept) == 5
-        if args[3] == 0:  # the calling thread's block: the other blocks' threads may read the caches already
+        if args[3] == 0:  # block 0 reads them poisoned; another thread's block may have read its own already
             for c in kept:
                 c.fill(np.nan)
         return real_vjp(*args)

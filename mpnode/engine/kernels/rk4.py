@@ -40,7 +40,7 @@ edges' weights or empty (all 1) -- and ``tgraph`` = (tindptr, tindices, tew) its
 Which field.  The functions that run a field take ``l2s``: None for the MP-NODE field, 1 for
 L2S.  numba drops a branch on ``l2s is None`` when it compiles for ``l2s`` None, so an MP-NODE
 driver holds no L2S code, and a first MP-NODE run compiles none (docs/evidence/cold-start.md).
-An L2S driver (``l2s`` an int64) holds both fields' code, as every driver did before: numba drops
+An L2S driver (``l2s`` an int64) holds both fields' code: numba drops
 such a branch only for None or a literal, and ``numba.literally`` would have made every call
 from Python try a compile first.
 """
