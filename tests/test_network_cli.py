@@ -198,6 +198,15 @@ def test_training_on_a_file_with_attributes_and_weights_hears_both(trained):
     assert m.attr_names == ["rate"] and m.spec.attr_dim == 1 and m.spec.aggregation.weight_scale > 0
 
 
+def test_recipe_auto_sums_the_weighted_neighbours_of_a_system_it_does_not_name(files, trained, tmp_path):
+    assert Model.load(trained).spec.aggregation.mlp == "sum"  # "relaxing": no row of its own
+    res = run("train", files / "train.h5", "-o", tmp_path / "plain.h5", "--epochs", 1, *QUICK, "--ignore-attrs")
+    assert res.exit_code == 0 and "aggregation mean" in res.output, res.output  # no weights heard: the paper's
+    write_trajectories(tmp_path / "k.h5", replace(relaxing_nodes(B=8), system="kuramoto_het"))
+    res = run("train", tmp_path / "k.h5", "-o", tmp_path / "k_model.h5", "--epochs", 1, *QUICK)
+    assert res.exit_code == 0 and Model.load(tmp_path / "k_model.h5").spec.aggregation.mlp == "mean", res.output
+
+
 def test_the_predictions_file_keeps_the_datas_network(files, trained, tmp_path):
     out = tmp_path / "pred.h5"
     res = run("eval", trained, files / "test.h5", "--predictions", out, "--reference-sample", 0)

@@ -37,7 +37,21 @@ AUTO = {
     # instead, and cut the swarm's zero-shot error on 6 and 8 carriers at equal epochs
     # (docs/evidence/quadrotor.md, the swarm's learning-rate schedule)
     "quadrotor_load": {"message_dim": 13, "lr": 1e-2, "schedule": "cosine"},
+    # springs pull with the sum of their forces, sum_j k_ij (X_j - X_i): under the mean a node
+    # hears that sum over its degree, which it cannot undo, and the sum gave 3-4x lower error on
+    # chains of 4 and zero-shot on chains of 10 (docs/evidence/networks.md)
+    "spring_pendulums_het": {"aggregation": "sum"},
+    # weighted systems whose coupling is a weighted mean by construction (kuramoto_het: K / deg_i)
+    # or where the sum measured no better (swing: docs/evidence/grids.md) keep the paper's mean
+    "kuramoto_het": {"aggregation": "mean"},
+    "swing": {"aggregation": "mean"},
 }
+
+#: what recipe auto sets for data with edge weights of a system the table above does not name:
+#: weights are strengths whose pulls, flows or currents add, and the mean would divide that sum
+#: by a degree the node cannot undo (pendulums on springs from a user's own simulator:
+#: docs/evidence/networks.md)
+AUTO_WEIGHTED = {"aggregation": "sum"}
 
 #: what recipe auto adds for data as they come (values not observed, irregular times): an
 #: initial-state encoder that estimates what was not measured from a trajectory's first
@@ -66,16 +80,17 @@ def _check(name):
         raise InputError("--recipe", str(name), "is not a recipe", " or ".join(NAMES))
 
 
-def recipe(name, system, kind="mpnode", messages=True, complete=True):
+def recipe(name, system, kind="mpnode", messages=True, complete=True, weighted=False):
     """The settings of recipe ``name`` for data of ``system`` and a model of ``kind`` (a dict of
-    runs options); ``complete``: the data are regular and every value observed.  Aggregation and
-    the linear path only concern MP-NODE models with messages; l2s keeps its sum unless told,
-    and node models the paper's batch size.  val_graphs only acts on files with more graphs
-    than it (otherwise the split is random)."""
+    runs options); ``complete``: the data are regular and every value observed; ``weighted``: the
+    model hears the data's edge weights.  Aggregation and the linear path only concern MP-NODE
+    models with messages; l2s keeps its sum unless told, and node models the paper's batch size.
+    val_graphs only acts on files with more graphs than it (otherwise the split is random)."""
     _check(name)
     settings = dict(PAPER)
     if name == "auto":
-        settings.update(AUTO_ALL if kind in AUTO_ALL_KINDS else {}, **AUTO.get(system, {}))
+        settings.update(AUTO_ALL if kind in AUTO_ALL_KINDS else {})
+        settings.update(AUTO.get(system, AUTO_WEIGHTED if weighted else {}))
         settings.update({} if complete else AUTO_IMPERFECT)
     if kind != "mpnode":
         settings.pop("aggregation")
@@ -90,7 +105,8 @@ def tables(name):
     _check(name)
     if name == "paper":
         return {"paper": PAPER}
-    return {"paper": PAPER, "all": AUTO_ALL, "systems": AUTO, "imperfect": AUTO_IMPERFECT, "finetune": FINETUNE_AUTO,
+    return {"paper": PAPER, "all": AUTO_ALL, "systems": AUTO, "weighted": AUTO_WEIGHTED, "imperfect": AUTO_IMPERFECT,
+            "finetune": FINETUNE_AUTO,
             "finetune_systems": FINETUNE_SYSTEMS}
 
 
