@@ -12,7 +12,7 @@ integrated with scipy's DOP853 (rtol 1e-9).  Every trajectory draws its lengths 
 The data are of swinging pendulums, as the built-in scene's: a draw in which a pendulum passes
 the horizontal (and may go over the top) is drawn again.
 
-    python benchmarks/studies/spring_chains.py OUT.h5 --nodes 4 --trajectories 400 --seed 0
+    python benchmarks/studies/spring_chains.py OUT.h5 --nodes 4 --trajectories 400 --seed 0 [--steps 100]
 """
 import argparse
 
@@ -68,8 +68,9 @@ def main():
     ap.add_argument("--nodes", type=int, default=4)
     ap.add_argument("--trajectories", type=int, default=400)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--steps", type=int, default=100, help="steps of dt = 0.05 s per trajectory")
     a = ap.parse_args()
-    x, graphs, attrs = simulate(a.nodes, a.trajectories, a.seed)
+    x, graphs, attrs = simulate(a.nodes, a.trajectories, a.seed, steps=a.steps)
     write_trajectories(a.output, x=x, graph=graphs, graph_index=np.arange(len(graphs)), dt=0.05,
                        system="spring_chains", node_attrs=attrs, attr_names=["length (m)", "mass (kg)"],
                        attrs={"state_names": ["angle (rad)", "angular velocity (rad/s)"]})
