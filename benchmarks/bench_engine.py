@@ -172,6 +172,11 @@ def gemm_gflops(dtype, n=2048, reps=5):
     return 2 * n ** 3 / best / 1e9
 
 
+def edge_weighted(graph):
+    """The same graph with a weight on every edge, uniform in [0.5, 1.5]: what weighted sums cost."""
+    return graph.reweighted(np.random.default_rng(2).uniform(0.5, 1.5, graph.n_edges))
+
+
 def timed_once(call):
     t0 = time.perf_counter()
     call()
@@ -220,8 +225,8 @@ def run_case(case, kind, dtype, gflops, profile=False, batch=None, train_big=Fal
     big = c.get("big", False)
     spec = spec_for(case, kind)
     graph = block_diagonal([c["graph"]()] * (batch or c["B"]))
-    if c.get("weighted"):  # the same graph with a weight on every edge: the weighted sums' cost
-        graph = graph.reweighted(np.random.default_rng(2).uniform(0.5, 1.5, graph.n_edges))
+    if c.get("weighted"):
+        graph = edge_weighted(graph)
     m = graph.n_nodes
     theta = glorot_init(spec, seed=0, dtype=dtype)
     x = np.random.default_rng(1).standard_normal((T + 1, m, c["dx"])).astype(dtype)

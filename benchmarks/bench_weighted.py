@@ -12,11 +12,10 @@ round cancels out of it.  float32, the engine's threads, after two warm-up calls
 import argparse
 import json
 import statistics
-import time
 
 import numpy as np
 
-from bench_engine import CASES, T, machine, spec_for
+from bench_engine import CASES, T, edge_weighted, machine, spec_for, timed_once
 from mpnode.base.graph import block_diagonal
 from mpnode.engine import forward
 from mpnode.engine.codegen import ask_for_wide_vectors
@@ -27,20 +26,14 @@ from mpnode.training.losses import value_and_grad
 def graphs():
     """S5's graph, and the same graph with bench_engine's S5w weights."""
     plain = block_diagonal([CASES["S5"]["graph"]()])
-    return plain, plain.reweighted(np.random.default_rng(2).uniform(0.5, 1.5, plain.n_edges))
-
-
-def ms(call):
-    t0 = time.perf_counter()
-    call()
-    return 1e3 * (time.perf_counter() - t0)
+    return plain, edge_weighted(plain)
 
 
 def paired(plain_call, weighted_call, rounds):
     """(plain ms, weighted ms, weighted / plain): medians over ``rounds`` back-to-back pairs."""
     for _ in range(2):
         plain_call(), weighted_call()
-    pairs = [(ms(plain_call), ms(weighted_call)) for _ in range(rounds)]
+    pairs = [(1e3 * timed_once(plain_call), 1e3 * timed_once(weighted_call)) for _ in range(rounds)]
     return (statistics.median(p for p, _ in pairs), statistics.median(w for _, w in pairs),
             statistics.median(w / p for p, w in pairs))
 

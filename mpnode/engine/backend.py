@@ -57,18 +57,18 @@ def run_blocks(run, n_blocks):
     if workers <= 0:
         run(0, n_blocks)
         return
-    blocks, lock, stopped = iter(range(n_blocks)), threading.Lock(), []
+    blocks, lock, stopped = iter(range(n_blocks)), threading.Lock(), threading.Event()
 
     def take_blocks():
         try:
-            while not stopped:
+            while not stopped.is_set():
                 with lock:
                     b = next(blocks, None)
                 if b is None:
                     return
                 run(b, b + 1)
         except BaseException:  # a failed block, or Ctrl-C: no thread takes another
-            stopped.append(True)
+            stopped.set()
             raise
 
     futures = []
@@ -77,7 +77,7 @@ def run_blocks(run, n_blocks):
             futures.append(_threads(workers).submit(take_blocks))
         take_blocks()
     except BaseException:  # here, or while submitting: no thread takes another block
-        stopped.append(True)
+        stopped.set()
         raise
     finally:  # even on Ctrl-C: no thread may write into the caller's arrays once this returns
         _wait_all(futures)

@@ -116,7 +116,8 @@ def with_recipe(options, name, datasets):
     options = canonical(options)
     model = configured({k: v for k, v in options.items() if k in MODEL_OPTIONS})
     complete = all(t.complete for t in datasets)
-    weighted = any(t.weighted for t in datasets) and not options.get("ignore_attrs", False)
+    ignore_attrs = check_bool(options.get("ignore_attrs", False), "options", "ignore_attrs")
+    weighted = any(t.weighted for t in datasets) and not ignore_attrs
     return fill_unset(options, recipe(name, datasets[0].system, model.kind, model.messages, complete, weighted))
 
 
