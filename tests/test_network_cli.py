@@ -317,6 +317,17 @@ def test_ignore_attrs_leaves_them_out_for_a_model_without_and_only_then(files, t
     assert not (tmp_path / "f.h5").exists()
 
 
+def test_a_whole_system_node_learns_and_is_evaluated_on_weighted_files(files, tmp_path):
+    """A plain NODE sees every node at once and no edge: it trains on a weighted file, as it is,
+    and evaluates on one."""
+    res = run("train", files / "train.h5", "-o", tmp_path / "node.h5", "--model", "node", "--epochs", 1,
+              "--batch-size", "8", "--hidden", "8")
+    assert res.exit_code == 0, res.output
+    assert Model.load(tmp_path / "node.h5").attr_names == ["rate"]
+    res = run("eval", tmp_path / "node.h5", files / "test.h5", "--reference-sample", 0, "--json")
+    assert res.exit_code == 0, res.output
+
+
 def test_an_ensemble_trains_on_attributes_and_weights_and_is_evaluated(files, tmp_path):
     out = tmp_path / "ens.h5"
     res = run("train", files / "train.h5", "-o", out, "--ensemble", 2, "--epochs", 2, *QUICK)

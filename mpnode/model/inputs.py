@@ -88,7 +88,7 @@ def for_model(model, traj, source, ignore_attrs=False):
         raise InputError(source, "node_attrs", f"are {', '.join(have) if have else 'missing'}",
                          f"the node attributes the model was trained with: {', '.join(want)}, in that order")
     if traj.weighted and not weighted_model:
-        if not ignore_attrs:
+        if not ignore_attrs and model.kind != "node":  # a whole-system NODE hears no edges: it trained without them
             raise InputError(source, "graphs/weights", "holds edge weights but the model was trained on unweighted "
                              "graphs", "unweighted graphs, or --ignore-attrs to leave the weights out")
         traj = replace(traj, graphs=[g.reweighted(None) for g in traj.graphs])
