@@ -87,12 +87,14 @@ def for_model(model, traj, source, ignore_attrs=False):
     elif want and have != want:
         raise InputError(source, "node_attrs", f"are {', '.join(have) if have else 'missing'}",
                          f"the node attributes the model was trained with: {', '.join(want)}, in that order")
+    if model.kind == "node":  # a whole-system NODE sees every node at once and no edge: weights or none, as in training
+        return attrs_as_controls(traj)
     if traj.weighted and not weighted_model:
-        if not ignore_attrs and model.kind != "node":  # a whole-system NODE hears no edges: it trained without them
+        if not ignore_attrs:
             raise InputError(source, "graphs/weights", "holds edge weights but the model was trained on unweighted "
                              "graphs", "unweighted graphs, or --ignore-attrs to leave the weights out")
         traj = replace(traj, graphs=[g.reweighted(None) for g in traj.graphs])
-    elif weighted_model and not traj.weighted and model.kind != "node":
+    elif weighted_model and not traj.weighted:
         raise InputError(source, "graphs/weights", "are missing, but the model was trained on weighted graphs",
                          "graphs with a weight on every edge (trajectory format version 3)")
     return attrs_as_controls(traj)

@@ -106,8 +106,7 @@ def tables(name):
     if name == "paper":
         return {"paper": PAPER}
     return {"paper": PAPER, "all": AUTO_ALL, "systems": AUTO, "weighted": AUTO_WEIGHTED, "imperfect": AUTO_IMPERFECT,
-            "finetune": FINETUNE_AUTO,
-            "finetune_systems": FINETUNE_SYSTEMS}
+            "finetune": FINETUNE_AUTO, "finetune_systems": FINETUNE_SYSTEMS}
 
 
 def finetune_recipe(name, kind="mpnode", system=None):
