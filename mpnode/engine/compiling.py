@@ -28,7 +28,7 @@ from mpnode.base.atomic import atomic_path
 VARIABLE = "MPNODE_COMPILE_AHEAD"
 #: seconds a first run waits for its compile on a 2-core machine (docs/evidence/cold-start.md), until this
 #: machine has its own figure
-DEFAULT_SECONDS = 100.0
+DEFAULT_SECONDS = 80.0
 _TIMES_FILE = "mpnode-compile-seconds.json"
 _FIELD_NAMES = {"mpnode": "MP-NODE", "l2s": "L2S"}
 

@@ -112,7 +112,7 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
         else:
             kept = _stage_caches(spec, n_states - 1, m, theta)
             run_blocks(lambda b0, b1: kernels.rollout_blocks(
-                theta, spec.dims, l2s, b0, b1, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off, plan.dense_A,
+                theta, spec.dims, l2s, b0, b1, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off, plan.dense_AT,
                 nsub, hstep, out, states, zend, kept), len(plan.blocks) - 1)
     return plan.to_user_order(out), states, kept, plan.to_user_order(zend[None])[0], u, (nsub, hstep), plan
 

@@ -95,14 +95,15 @@ def dense_tanh_forward(XT, W, b, YT):
 
 
 @njit(**JIT)
-def dense_sum(A, src, col0, out, ocol0):
-    """out[b*N + i, ocol0+d] = sum_j A[i, j] src[b*N + j, col0+d] for every graph b of the rows.
+def dense_sum(AT, src, col0, out, ocol0):
+    """out[b*N + i, ocol0+d] = sum_j AT[j, i] src[b*N + j, col0+d] for every graph b of the rows.
 
-    The rows of ``src`` are k copies of one N-node graph with adjacency A (N, N); the k
-    graphs go through one product (N, N) @ (N, k*w), which beats walking CSR rows for
-    small graphs (and, unlike a BLAS call, takes no lock that two threads wait on).
+    The rows of ``src`` are k copies of one N-node graph whose adjacency's transpose is AT (N, N)
+    (C order: `product` reads it as it lies, and no product of another memory order is compiled
+    for the forward pass); the k graphs go through one product (N, N) @ (N, k*w), which beats
+    walking CSR rows for small graphs (and, unlike a BLAS call, takes no lock that two threads wait on).
     """
-    N = A.shape[0]
+    N = AT.shape[0]
     k = src.shape[0] // N
     w = out.shape[1] - ocol0
     Mt = aligned_empty((N, k * w), src)
@@ -111,7 +112,7 @@ def dense_sum(A, src, col0, out, ocol0):
             for d in range(w):
                 Mt[j, b * w + d] = src[b * N + j, col0 + d]
     R = aligned_empty((N, k * w), src)
-    product(A.T, A[0, :0], Mt, R)
+    product(AT, AT[0, :0], Mt, R)
     for b in range(k):
         for i in range(N):
             for d in range(w):

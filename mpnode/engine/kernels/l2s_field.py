@@ -92,7 +92,8 @@ def update_tile(theta, dims, S_all, sums, graph, i0, i1, zoff, H0, A, T):
     aggregate_tile(S_all, 0, H, sums, indptr, indices, ew, weight, self_msg, i0, i1, zoff, A, 0)
     for r in range(i1 - i0):
         if _empty_row(indptr, self_msg, i0 + r):
-            A[r, :] = psi
+            for d in range(psi.shape[0]):
+                A[r, d] = psi[d]
     dense_tanh_forward(A, W_upd, b_upd, T)
     return dense_forward(_residual(H0, T), W_out, b_out)
 

@@ -90,6 +90,28 @@ def _tanh_overload(x):
     return tanh64
 
 
+@njit(inline="always", **JIT)
+def copy_into(dst, src):
+    """dst[:] = src for 2-D arrays, written as a loop: numba's assignment of an array to a slice
+    compiles a shape-mismatch message formatted at run time, whose string code lengthened every
+    driver's first compile (docs/evidence/cold-start.md).  This one's message is a constant."""
+    if dst.shape != src.shape:
+        raise ValueError("copy_into: the arrays' shapes differ")
+    for i in range(dst.shape[0]):
+        for d in range(dst.shape[1]):
+            dst[i, d] = src[i, d]
+
+
+@njit(inline="always", **JIT)
+def add_into(dst, src):
+    """dst[:] += src for 2-D arrays, as `copy_into` (a slice's ``+=`` assigns the slice too)."""
+    if dst.shape != src.shape:
+        raise ValueError("add_into: the arrays' shapes differ")
+    for i in range(dst.shape[0]):
+        for d in range(dst.shape[1]):
+            dst[i, d] += src[i, d]
+
+
 @njit(**JIT)
 def dense_tanh_forward(X, W, b, Y):
     """Y = tanh(X W + b).  X (n, a), W (a, c), b (c,), Y (n, c) written in place."""

@@ -16,7 +16,7 @@ from numba import njit
 
 from ..dims import DM, DU, DX, HIDDEN, LINEAR, LINEAR_OWN, LINEAR_STATE, SELF_MSG, ZERO_MSG
 from .feature_major import aligned_empty, dense_tanh_forward, param_cotangent, product, tanh_cotangent
-from .layers import JIT, aggregate_tile
+from .layers import JIT, add_into, aggregate_tile, copy_into
 
 
 @njit(inline="always", **JIT)
@@ -64,7 +64,7 @@ def linear_input(VT, c, weight, own, i0):
     """The linear path's input for rows i0..: VT[c:] (the MLP's aggregate, feature-major), each
     node r times weight[M + i0 + r] when the path has its ``own`` aggregation (M = weight.size / 2)."""
     AT = aligned_empty((VT.shape[0] - c, VT.shape[1]), VT)
-    AT[:] = VT[c:]
+    copy_into(AT, VT[c:])
     if own:
         off = weight.shape[0] // 2 + i0
         for d in range(AT.shape[0]):
@@ -81,7 +81,7 @@ def linear_aggregate_forward(Wa, VT, c, weight, own, i0, KT):
     ncol = Wa.shape[1]
     PT = aligned_empty((ncol, VT.shape[1]), VT)
     product(Wa, Wa[0, :0], linear_input(VT, c, weight, own, i0), PT)
-    KT[:ncol] += PT
+    add_into(KT[:ncol], PT)
 
 
 @njit(inline="always", **JIT)
@@ -96,7 +96,7 @@ def linear_aggregate_backward(Wa, VT, c, weight, own, i0, GKT, gWa, GVT):
         for d in range(GAT.shape[0]):
             for r in range(GAT.shape[1]):
                 GAT[d, r] *= weight[off + r]
-    GVT[c:] += GAT
+    add_into(GVT[c:], GAT)
 
 
 @njit(inline="always", **JIT)

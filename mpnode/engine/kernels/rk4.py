@@ -50,7 +50,7 @@ from numba import njit, prange
 from ..dims import DM, DU, DX, HIDDEN, KINEMATICS, KIND, L2S, SELF_MSG, ZERO_MSG
 from . import kinematics, l2s_field, mpnode_field
 from .feature_major import aligned_empty, dense_sum
-from .layers import JIT, edge_cotangent, transpose_tile
+from .layers import JIT, add_into, copy_into, edge_cotangent, transpose_tile
 
 TILE = 192  # rows per tile inside a block (one block per thread: a few hundred nodes)
 STAGE_TILE = 256  # rows per parallel task of the stagewise drivers (one big graph: fewer, larger tasks)
@@ -103,9 +103,10 @@ def stage_arrays(stage, z, za, zb):
 
 
 @njit(inline="always", **JIT)
-def dense_block(dense_A, n, off):
-    """The (n, n) adjacency of a dense block; (0, 0) when the block uses CSR."""
-    return dense_A[off:off + n * n].reshape(n, n)
+def dense_block(mats, n, off):
+    """A dense block's (n, n) matrix (its adjacency, or the adjacency's transpose) from the flat ``mats``;
+    (0, 0) when the block uses CSR."""
+    return mats[off:off + n * n].reshape(n, n)
 
 
 # ---------------------------------------------------------------------------
@@ -167,12 +168,12 @@ def update_tile(theta, dims, l2s, zin, u, S, sums, graph, i0, i1, zoff, C, slot,
 
 
 @njit(**JIT)
-def stage_range(stage, h, theta, dims, l2s, z, zin, zout, acc, u, graph, lo, hi, zoff, A, sums, C):
+def stage_range(stage, h, theta, dims, l2s, z, zin, zout, acc, u, graph, lo, hi, zoff, AT, sums, C):
     """One RK stage of the closed node range lo..hi, tile by tile; caches C[.][stage] (rows i - zoff).
 
-    A non-empty ``A`` (N, N) says the range is copies of one N-node graph with that
-    adjacency (self-loop included when nodes hear themselves): the neighbour sums then
-    come from one GEMM into ``sums`` instead of the CSR rows.
+    A non-empty ``AT`` (N, N) says the range is copies of one N-node graph whose adjacency
+    (self-loop included when nodes hear themselves) has that transpose: the neighbour sums
+    then come from one GEMM into ``sums`` instead of the CSR rows.
     """
     dx, zero_msg = dims[DX], dims[ZERO_MSG]
     for i0 in range(lo, hi, TILE):
@@ -180,8 +181,8 @@ def stage_range(stage, h, theta, dims, l2s, z, zin, zout, acc, u, graph, lo, hi,
         send_tile(theta, dims, l2s, zin, u, i0, i1, zoff, C, stage, i0 - zoff, i1 - zoff)
     src, col0 = (C[2][stage], 0) if l2s is not None else (zin, dx)
     n_dense = 0
-    if A.shape[0] > 0 and not zero_msg:
-        dense_sum(A, src[lo - zoff:hi - zoff], col0, sums[lo - zoff:hi - zoff], np.int64(0))
+    if AT.shape[0] > 0 and not zero_msg:
+        dense_sum(AT, src[lo - zoff:hi - zoff], col0, sums[lo - zoff:hi - zoff], np.int64(0))
         n_dense = sums.shape[0]
     for i0 in range(lo, hi, TILE):
         i1 = min(hi, i0 + TILE)
@@ -191,7 +192,7 @@ def stage_range(stage, h, theta, dims, l2s, z, zin, zout, acc, u, graph, lo, hi,
 
 
 @njit(inline="always", **JIT)
-def substep_range(h, theta, dims, l2s, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C, smsg):
+def substep_range(h, theta, dims, l2s, z, za, zb, acc, u, graph, lo, hi, zoff, AT, sums, C, smsg):
     """One RK4 step of the closed node range lo..hi (z updated in place); each stage's input
     messages copied into smsg[stage] (rows i - zoff) unless it is empty (the edge weights'
     cotangent reads them)."""
@@ -199,8 +200,8 @@ def substep_range(h, theta, dims, l2s, z, za, zb, acc, u, graph, lo, hi, zoff, A
     for stage in range(4):
         zin, zout = stage_arrays(stage, z, za, zb)
         if smsg.shape[1] > 0:
-            smsg[stage] = zin[:, dx:dx + smsg.shape[2]]
-        stage_range(stage, h, theta, dims, l2s, z, zin, zout, acc, u, graph, lo, hi, zoff, A, sums, C)
+            copy_into(smsg[stage], zin[:, dx:dx + smsg.shape[2]])
+        stage_range(stage, h, theta, dims, l2s, z, zin, zout, acc, u, graph, lo, hi, zoff, AT, sums, C)
 
 
 # ---------------------------------------------------------------------------
@@ -251,10 +252,11 @@ def send_vjp_tile(theta, dims, l2s, gS, gh0, i0, i1, zoff, C, slot, r0, r1, gthe
                                 C[2][slot, r0:r1], gtheta, gin, gu)
 
 
-@njit(**JIT)
-def substep_vjp_range(h, theta, dims, l2s, zstart, a, u, graph, tgraph, lo, hi, zoff, A, AT, sums, work, C, recompute,
+@njit(inline="always", **JIT)
+def substep_vjp_range(h, theta, dims, l2s, zstart, a, u, graph, tgraph, lo, hi, zoff, AT, A, sums, work, C, recompute,
                       gtheta, gu, gw):
     """Reverse one RK4 step of the closed range lo..hi: returns the cotangent of its start state.
+    Inlined into vjp_blocks, so that LLVM optimises its callees once, not twice (docs/evidence/cold-start.md).
 
     zstart: the state at the step's start; a: the cotangent of the state at its end.  The
     four stages' caches C are the forward's, or, when ``recompute``, recomputed from zstart
@@ -266,8 +268,8 @@ def substep_vjp_range(h, theta, dims, l2s, zstart, a, u, graph, tgraph, lo, hi, 
     z, za, zb, acc, gagg, gS, gh0, smsg = work
     dx, self_msg = dims[DX], dims[SELF_MSG]
     if recompute:
-        z[:] = zstart
-        substep_range(h, theta, dims, l2s, z, za, zb, acc, u, graph, lo, hi, zoff, A, sums, C, smsg)
+        copy_into(z, zstart)
+        substep_range(h, theta, dims, l2s, z, za, zb, acc, u, graph, lo, hi, zoff, AT, sums, C, smsg)
     gz = a.copy()
     gnext = za  # cotangent of the next stage's input (stage buffers are free now)
     gin = zb
@@ -282,8 +284,8 @@ def substep_vjp_range(h, theta, dims, l2s, zstart, a, u, graph, tgraph, lo, hi, 
         if gw.shape[0] > 0:
             sent = C[2][stage] if l2s is not None else smsg[stage]
             edge_cotangent(gagg, sent, graph[0], graph[1], lo, hi, zoff, gw)
-        if AT.shape[0] > 0:
-            dense_sum(AT, gagg[lo - zoff:hi - zoff], np.int64(0), target[lo - zoff:hi - zoff], tcol)
+        if A.shape[0] > 0:  # the sum's transpose: a product by A^T, which dense_sum takes as A
+            dense_sum(A, gagg[lo - zoff:hi - zoff], np.int64(0), target[lo - zoff:hi - zoff], tcol)
         else:
             for i0 in range(lo, hi, TILE):
                 transpose_tile(gagg, tgraph[0], tgraph[1], tgraph[2], self_msg, i0, min(hi, i0 + TILE), zoff, target,
@@ -302,7 +304,8 @@ def substep_vjp_range(h, theta, dims, l2s, zstart, a, u, graph, tgraph, lo, hi, 
 # (T*substeps+1, M, dz) or empty; zend (M, dz) receives the full final state, so that a
 # later call can continue bit for bit where this one stopped (mpnode.Simulator).
 # Block b is made of copies of one dense_n[b]-node graph whose adjacency is the row-major
-# (N, N) matrix at dense_A[dense_off[b]:] (dense_n[b] = 0: use the CSR rows).
+# (N, N) matrix at dense_A[dense_off[b]:], its transpose at dense_AT[dense_off[b]:] (dense_n[b] = 0:
+# use the CSR rows); the forward sums multiply by the transpose (`feature_major.dense_sum`).
 # ---------------------------------------------------------------------------
 @njit(inline="always", **JIT)
 def _block_work(dims, n, like, slots):
@@ -337,7 +340,7 @@ def step_caches(P, k):
 
 
 @njit(nogil=True, **JIT)
-def rollout_blocks(theta, dims, l2s, b0, b1, z0, U, graph, block_ptr, dense_n, dense_off, dense_A, nsub, hstep, out,
+def rollout_blocks(theta, dims, l2s, b0, b1, z0, U, graph, block_ptr, dense_n, dense_off, dense_AT, nsub, hstep, out,
                    states, zend, kept):
     """Forward rollout of blocks b0..b1 from the full state z0: x at every output step into ``out``,
     the final z into zend; every RK4 step's stage caches into ``kept`` when it has rows (`block_caches`)."""
@@ -350,23 +353,23 @@ def rollout_blocks(theta, dims, l2s, b0, b1, z0, U, graph, block_ptr, dense_n, d
         hi = block_ptr[b + 1]
         z, za, zb, acc, C = _block_work(dims, hi - lo, z0, 0 if keep_caches else 4)
         P = block_caches(kept, z0.shape[0], lo, hi)
-        A = dense_block(dense_A, dense_n[b], dense_off[b])
+        AT = dense_block(dense_AT, dense_n[b], dense_off[b])
         sums = np.empty((hi - lo, sent_width(dims)), z0.dtype)
         smsg = np.empty((4, 0, 0), z0.dtype)
-        z[:] = z0[lo:hi]
-        out[0, lo:hi] = z0[lo:hi, :dx]
+        copy_into(z, z0[lo:hi])
+        copy_into(out[0, lo:hi], z0[lo:hi, :dx])
         if keep:
-            states[0, lo:hi] = z
+            copy_into(states[0, lo:hi], z)
         k = 0
         for t in range(T):
             for s in range(nsub[t]):
                 Ck = step_caches(P, k) if keep_caches else C
-                substep_range(hstep[t], theta, dims, l2s, z, za, zb, acc, U[t], graph, lo, hi, lo, A, sums, Ck, smsg)
+                substep_range(hstep[t], theta, dims, l2s, z, za, zb, acc, U[t], graph, lo, hi, lo, AT, sums, Ck, smsg)
                 k += 1
                 if keep:
-                    states[k, lo:hi] = z
-            out[t + 1, lo:hi] = z[:, :dx]
-        zend[lo:hi] = z
+                    copy_into(states[k, lo:hi], z)
+            copy_into(out[t + 1, lo:hi], z[:, :dx])
+        copy_into(zend[lo:hi], z)
 
 
 @njit(nogil=True, **JIT)
@@ -400,13 +403,14 @@ def vjp_blocks(theta, dims, l2s, b0, b1, U, graph, tgraph, block_ptr, dense_n, d
         gz = np.zeros_like(z)
         k = states.shape[0] - 1
         for t in range(T - 1, -1, -1):
-            gz[:, :dx] += GX[t + 1, lo:hi]
+            add_into(gz[:, :dx], GX[t + 1, lo:hi])
             for s in range(nsub[t] - 1, -1, -1):
                 k -= 1
                 Ck = C if recompute else step_caches(P, k)
                 gz = substep_vjp_range(hstep[t], theta, dims, l2s, states[k, lo:hi], gz, U[t], graph, tgraph, lo, hi,
-                                       lo, A, AT, sums, work, Ck, recompute, gtheta, GU[t], GW)
-        gx0[lo:hi] = gz[:, :dx] + GX[0, lo:hi]
+                                       lo, AT, A, sums, work, Ck, recompute, gtheta, GU[t], GW)
+        copy_into(gx0[lo:hi], gz[:, :dx])
+        add_into(gx0[lo:hi], GX[0, lo:hi])
 
 
 # ---------------------------------------------------------------------------
@@ -431,11 +435,11 @@ def rollout_stagewise(theta, dims, l2s, z0, U, graph, nsub, hstep, out, states, 
     none = np.empty((0, 0), z0.dtype)
     msg = np.empty((M if l2s is None else 0, dm), z0.dtype)
     if l2s is None:
-        msg[:] = z0[:, dx:dx + dm]  # the first stage's input is z0
+        _copy_rows(msg, z0[:, dx:dx + dm])  # the first stage's input is z0
     mnext = np.empty_like(msg)
-    out[0] = z0[:, :dx]
+    _copy_rows(out[0], z0[:, :dx])
     if keep:
-        states[0] = z
+        _copy_rows(states[0], z)
     j = 0
     for t in range(T):
         h = hstep[t]
@@ -466,9 +470,9 @@ def rollout_stagewise(theta, dims, l2s, z0, U, graph, nsub, hstep, out, states, 
                 msg, mnext = mnext, msg
             j += 1
             if keep:
-                states[j] = z
-        out[t + 1] = z[:, :dx]
-    zend[:] = z
+                _copy_rows(states[j], z)
+        _copy_rows(out[t + 1], z[:, :dx])
+    _copy_rows(zend, z)
 
 
 @njit(**JIT)
@@ -516,6 +520,14 @@ def _add_rows(acc, G):
 
 
 @njit(parallel=True, **JIT)
+def _copy_rows(dst, src):
+    """dst[:] = src, the rows in parallel, without numba's slice assignment (`layers.copy_into`)."""
+    for i in prange(dst.shape[0]):
+        for d in range(src.shape[1]):
+            dst[i, d] = src[i, d]
+
+
+@njit(parallel=True, **JIT)
 def vjp_stagewise(theta, dims, l2s, U, graph, tgraph, nsub, hstep, states, GX, gthetas, gx0, GU):
     """As vjp_blocks for one large graph; gthetas (ntiles, P) holds one partial sum per tile."""
     T1, M, dx = GX.shape
@@ -540,9 +552,9 @@ def vjp_stagewise(theta, dims, l2s, U, graph, tgraph, nsub, hstep, states, GX, g
         h = hstep[t]
         for s in range(nsub[t] - 1, -1, -1):
             j -= 1
-            z[:] = states[j]
+            _copy_rows(z, states[j])
             substep_tiles(h, theta, dims, l2s, z, za, zb, acc, U[t], graph, C, msg, mnext)
-            gnew[:] = gz
+            _copy_rows(gnew, gz)
             gnext, gin = gbuf0, gbuf1
             for stage in range(3, -1, -1):
                 for k in prange(ntiles):
@@ -558,7 +570,8 @@ def vjp_stagewise(theta, dims, l2s, U, graph, tgraph, nsub, hstep, states, GX, g
                         send_vjp_tile(theta, dims, l2s, gS, gh0, i0, i1, 0, C, stage, i0, i1, gthetas[k], gin, GU[t])
                     else:
                         transpose_tile(gagg, tgraph[0], tgraph[1], tgraph[2], self_msg, i0, i1, 0, gin, dx)
-                    gnew[i0:i1] += gin[i0:i1]
+                    add_into(gnew[i0:i1], gin[i0:i1])
                 gnext, gin = gin, gnext
-            gz[:] = gnew
-    gx0[:] = gz[:, :dx] + GX[0]
+            _copy_rows(gz, gnew)
+    _copy_rows(gx0, gz[:, :dx])
+    _add_rows(gx0, GX[0])
