@@ -1,6 +1,8 @@
 """Compiling the kernels: the VJP compiled ahead in a process of its own, announced once, timed."""
 import json
+import os
 
+import numba
 import numpy as np
 import pytest
 
@@ -38,7 +40,7 @@ def test_a_driver_that_is_not_compiled_compiles_ahead_in_another_process_and_is_
     monkeypatch.setattr(compiling.subprocess, "Popen", lambda *a, **k: started.append(a[0]) or popen(*a, **k))
     monkeypatch.setattr(compiling, "is_compiled", lambda name, dtype, field: False)
     gtheta, gx0 = _tiny_vjp()
-    assert len(started) == 1 and started[0][-3:] == ["float32", "blocks", "mpnode"]
+    assert len(started) == 1 and started[0][-3:] == ["float32", "vjp_blocks", "mpnode"]
     assert not compiling._pending  # the VJP waited for it
     assert fresh_state == [f"compiling the MP-NODE kernels for float32, once: ~{compiling.DEFAULT_SECONDS:.0f} s"]
     assert np.isfinite(gtheta).all() and np.abs(gtheta).sum() > 0
@@ -60,7 +62,7 @@ def test_compiling_ahead_can_be_switched_off(fresh_state, monkeypatch):
     monkeypatch.setenv(compiling.VARIABLE, "0")
     monkeypatch.setattr(compiling, "is_compiled", lambda name, dtype, field: False)
     monkeypatch.setattr(compiling.subprocess, "Popen", lambda *a, **k: pytest.fail("started a process"))
-    compiling.compile_vjp_ahead(np.float32, stagewise=False)
+    compiling.compile_vjp_ahead(np.float32, "vjp_blocks")
     assert not compiling._pending
 
 
@@ -68,3 +70,46 @@ def test_an_unreadable_figures_file_gives_the_default_estimate(fresh_state):
     with open(compiling._times_path(), "w") as f:
         f.write("not json")
     assert compiling.estimate() == compiling.DEFAULT_SECONDS
+
+
+TINY = """
+from numba import njit
+
+
+@njit(cache=True)
+def one_more(x):
+    return x + 1
+"""
+WAITER = """
+import sys
+sys.path.insert(0, sys.argv[1])
+from mpnode.engine import compiling
+import lock_probe as tiny
+tiny.one_more._cache = compiling._OneCompileEach(tiny.one_more._cache)
+print("calling", flush=True)
+tiny.one_more(1)
+print(sum(tiny.one_more._cache_hits.values()), sum(tiny.one_more._cache_misses.values()), flush=True)
+"""
+
+
+@pytest.mark.skipif(os.name == "nt", reason="no fcntl: mpnode compiles everything in one process there")
+def test_a_compile_under_way_elsewhere_is_waited_for_and_loaded_not_compiled_again(tmp_path, monkeypatch):
+    import fcntl
+    import importlib
+    import subprocess
+    import sys
+
+    (tmp_path / "lock_probe.py").write_text(TINY)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    tiny = importlib.import_module("lock_probe")
+    shared = compiling._OneCompileEach(tiny.one_more._cache)
+    os.makedirs(os.path.dirname(shared.prefix), exist_ok=True)
+    with open(f"{shared.prefix}-{compiling._signature_key((numba.int64,))}.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # another process, compiling one_more(int64)
+        waiter = subprocess.Popen([sys.executable, "-c", WAITER, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+        assert waiter.stdout.readline() == "calling\n"
+        with pytest.raises(subprocess.TimeoutExpired):
+            waiter.wait(timeout=1.5)  # it waits for the lock
+        assert tiny.one_more(1) == 2  # compiled here and saved to numba's cache, then the lock released
+    hits, misses = map(int, waiter.communicate(timeout=60)[0].split())
+    assert (hits, misses) == (1, 0) and waiter.returncode == 0

@@ -1,5 +1,6 @@
-"""Compile the engine's four drivers (rollout and VJP, block and stagewise) for one dtype and each
-field (MP-NODE, L2S) into numba's on-disk cache:  python tests/warm_kernels.py float32
+"""Compile the engine's five drivers (rollout and VJP, block and stagewise, and the block VJP that
+recomputes the stages) for one dtype and each field (MP-NODE, L2S) into numba's on-disk cache:
+python tests/warm_kernels.py float32
 
 tests/conftest.py runs this once per dtype, the two at once, the first time a test calls the
 compiled kernels (see "Compiling the kernels on both cores" there).  Every model kind and size
@@ -23,6 +24,7 @@ def warm(dtype):
     """One rollout and one VJP through each driver in ``dtype``, for each field."""
     from mpnode.base.graph import Graph
     from mpnode.engine import forward_with_vjp
+    from mpnode.engine.precompile import compile_vjp
     from mpnode.model import Model
 
     graph = Graph.from_edges(3, [(0, 1), (1, 2)])
@@ -32,6 +34,7 @@ def warm(dtype):
         for driver in ("blocks", "stagewise"):
             x, vjp = forward_with_vjp(model.spec, theta, np.zeros((3, 2)), graph, None, 1, driver=driver)
             vjp(np.zeros_like(x))
+        compile_vjp(dtype, "vjp_blocks_recompute", model.spec.kind)  # the block VJP that recomputes the stages
 
 
 if __name__ == "__main__":

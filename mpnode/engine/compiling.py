@@ -2,14 +2,16 @@
 
 numba compiles a driver (`kernels.rk4`) the first time it is called for a precision, then keeps
 the machine code in its on-disk cache (`kernels._cache_dir`), so a second run starts at once.
-A first compile takes minutes on a small machine, and training needs two drivers, the rollout
+A first compile takes a minute on a small machine, and training needs two drivers, the rollout
 and its VJP, which numba would compile one after the other.  So `integrate_with_vjp` calls
 `compile_vjp_ahead`: a process of its own compiles the VJP driver into the cache while this one
 compiles the rollout, and the VJP's first call (`before_call`) waits for it and loads what it
-wrote.  numba rewrites a function's cache index with no lock, so two processes saving overloads
-of one function at once can lose an entry or leave one naming the other's code (numba issue
-4807): both processes' cache writes take turns (`serialise_cache_writes`), and where that cannot
-be done (no fcntl) everything compiles here, in turn.
+wrote.  The two drivers share callees (the neighbour sums, the products): each is compiled by
+whichever process reaches it first, the other waits and loads it (`_OneCompileEach`).  numba
+rewrites a function's cache index with no lock, so two processes saving overloads of one
+function at once can lose an entry or leave one naming the other's code (numba issue 4807):
+both processes' cache writes take turns (`serialise_cache_writes`), and where that cannot be
+done (no fcntl) everything compiles here, in turn.
 
 `set_announcer` lets the command line say what is happening ("compiling the MP-NODE kernels for
 float32, once: ~N s"); the library itself prints nothing.  MPNODE_COMPILE_AHEAD=0 keeps every
@@ -30,6 +32,11 @@ VARIABLE = "MPNODE_COMPILE_AHEAD"
 #: machine has its own figure
 DEFAULT_SECONDS = 80.0
 _TIMES_FILE = "mpnode-compile-seconds.json"
+#: the drivers by name -> the function of `kernels.rk4` compiled for it: the block VJP is compiled
+#: apart for kept stage caches (its ``states`` None) and for recomputed stages (its ``kept`` None)
+DRIVERS = {"rollout_blocks": "rollout_blocks", "rollout_stagewise": "rollout_stagewise", "vjp_blocks": "vjp_blocks",
+           "vjp_blocks_recompute": "vjp_blocks", "vjp_stagewise": "vjp_stagewise"}
+_VJP_STATES = 15  # the position of vjp_blocks's ``states``
 _FIELD_NAMES = {"mpnode": "MP-NODE", "l2s": "L2S"}
 
 _announce = None
@@ -60,10 +67,10 @@ def before_call(name, dtype, field="mpnode"):
     _known.add(key)
 
 
-def compile_vjp_ahead(dtype, stagewise, field="mpnode"):
-    """Start compiling the VJP driver for ``dtype`` and ``field`` in another process unless it is
-    compiled (or ahead-compiling is switched off): the caller goes on to compile the rollout."""
-    name = "vjp_stagewise" if stagewise else "vjp_blocks"
+def compile_vjp_ahead(dtype, name, field="mpnode"):
+    """Start compiling VJP driver ``name`` (`DRIVERS`) for ``dtype`` and ``field`` in another process
+    unless it is compiled (or ahead-compiling is switched off): the caller goes on to compile the
+    rollout."""
     key = (name, np.dtype(dtype).name, field)
     if key in _known or key in _pending or os.environ.get(VARIABLE, "1") == "0":
         return
@@ -73,8 +80,7 @@ def compile_vjp_ahead(dtype, stagewise, field="mpnode"):
     if not serialise_cache_writes():
         return
     try:  # a failure there only means this process compiles the VJP itself: nothing to show
-        proc = subprocess.Popen([sys.executable, "-m", "mpnode.engine.precompile", key[1],
-                                 "stagewise" if stagewise else "blocks", field],
+        proc = subprocess.Popen([sys.executable, "-m", "mpnode.engine.precompile", key[1], name, field],
                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError:  # no interpreter to start (an embedded Python): compile here, in turn
         return
@@ -83,8 +89,8 @@ def compile_vjp_ahead(dtype, stagewise, field="mpnode"):
 
 def serialise_cache_writes():
     """Make each of this process's numba cache writes hold an exclusive lock on one file in the
-    cache folder, shared by every mpnode process; False where file locks are not to be had
-    (no fcntl)."""
+    cache folder, shared by every mpnode process, and each kernel compile a lock of its own
+    (`_OneCompileEach`); False where file locks are not to be had (no fcntl)."""
     global _lock_path
     try:
         import fcntl
@@ -105,7 +111,89 @@ def serialise_cache_writes():
                 return save(self, key, data)  # closing the file releases the lock
 
         IndexDataCacheFile.save = locked_save
+        _OneCompileEach.install()
     return True
+
+
+class _OneCompileEach:
+    """A kernel's numba cache whose miss waits for the lock of that function and signature,
+    then looks again: of two processes compiling drivers with callees in common (the rollout
+    here, the VJP ahead), the second to reach a callee loads what the first compiled instead
+    of compiling it too.  The lock is held from the miss until numba saves the compile (or the
+    compile fails).  Locks are taken callers first, and the call graph has no cycles, so two
+    processes cannot wait for each other."""
+
+    def __init__(self, cache):
+        self.cache, self.held = cache, {}
+        self.prefix = os.path.join(cache.cache_path, "locks", cache._impl.filename_base)
+
+    def __getattr__(self, name):
+        return getattr(self.cache, name)
+
+    @classmethod
+    def install(cls):
+        """Wrap the cache of every kernel compiled apart (its inlined helpers compile in their callers)."""
+        from numba.core import event
+        from numba.core.registry import CPUDispatcher
+
+        from . import kernels
+
+        class ReleaseOnFailure(event.Listener):
+            """Releases a failed compile's lock (one that succeeded added its overload before this event)."""
+
+            def on_start(self, ev):
+                pass
+
+            def on_end(self, ev):
+                disp, args = ev.data["dispatcher"], tuple(ev.data["args"])
+                if isinstance(getattr(disp, "_cache", None), cls) and args not in disp.overloads:
+                    disp._cache.release(_signature_key(args))
+
+        for module in kernels.MODULES:
+            for disp in vars(module).values():
+                if isinstance(disp, CPUDispatcher) and disp._cache.__class__ is not cls:
+                    disp._cache = cls(disp._cache)
+        event.register("numba:compile", ReleaseOnFailure())
+
+    def load_overload(self, sig, target_context):
+        import fcntl
+
+        cres = self.cache.load_overload(sig, target_context)
+        if cres is not None:
+            return cres
+        key = _signature_key(sig)
+        try:
+            os.makedirs(os.path.dirname(self.prefix), exist_ok=True)
+            lock = open(f"{self.prefix}-{key}.lock", "a")
+        except OSError:  # a folder it cannot write: compile without waiting for anyone
+            return None
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        cres = self.cache.load_overload(sig, target_context)
+        if cres is not None:
+            lock.close()
+        else:
+            self.held[key] = lock  # until save_overload, or the compile's failure
+        return cres
+
+    def save_overload(self, sig, data):
+        try:
+            self.cache.save_overload(sig, data)
+        finally:
+            self.release(_signature_key(sig))
+
+    def release(self, key):
+        lock = self.held.pop(key, None)
+        if lock is not None:
+            lock.close()
+
+
+def _signature_key(sig):
+    import hashlib
+
+    from numba.core import sigutils
+
+    args, _ = sigutils.normalize_signature(sig)
+    return hashlib.sha256(str(tuple(args)).encode()).hexdigest()[:16]
 
 
 def _wait(key):
@@ -117,17 +205,19 @@ def _wait(key):
 
 
 def is_compiled(name, dtype, field="mpnode"):
-    """Is driver ``name`` compiled for ``dtype`` and ``field`` in this process or in numba's
-    on-disk cache?"""
+    """Is driver ``name`` (`DRIVERS`) compiled for ``dtype`` and ``field`` in this process or in
+    numba's on-disk cache?"""
     from numba import types
 
     from .kernels import rk4
 
-    disp = getattr(rk4, name)
+    disp = getattr(rk4, DRIVERS[name])
     want = types.float32 if np.dtype(dtype) == np.float32 else types.float64
 
     def match(sig):  # (theta, dims, l2s, ...): l2s is None for the MP-NODE field, an int64 for L2S
-        return sig[0].dtype == want and isinstance(sig[2], types.NoneType) == (field == "mpnode")
+        return (sig[0].dtype == want and isinstance(sig[2], types.NoneType) == (field == "mpnode")
+                and (name != "vjp_blocks" or isinstance(sig[_VJP_STATES], types.NoneType))
+                and (name != "vjp_blocks_recompute" or not isinstance(sig[_VJP_STATES], types.NoneType)))
 
     if any(match(sig) for sig in disp.signatures):
         return True

@@ -1,5 +1,6 @@
-"""The process `compiling.compile_vjp_ahead` starts: ``python -m mpnode.engine.precompile float32 blocks
-mpnode`` compiles one VJP driver, for one field ("mpnode" or "l2s"), into numba's on-disk cache and exits."""
+"""The process `compiling.compile_vjp_ahead` starts: ``python -m mpnode.engine.precompile float32 vjp_blocks
+mpnode`` compiles one VJP driver (`compiling.DRIVERS`), for one field ("mpnode" or "l2s"), into numba's
+on-disk cache and exits."""
 import sys
 
 import numpy as np
@@ -14,19 +15,21 @@ from .schedule import time_grid
 from .spec import FieldSpec, checked_controls
 
 
-def compile_vjp(dtype, driver, field="mpnode"):
-    """One tiny VJP of ``field`` through driver ``"blocks"`` or ``"stagewise"`` in ``dtype``, from
-    stand-in states (the reverse pass's types are all that matter here): numba compiles the VJP
-    driver and its callees into the on-disk cache, and the rollout driver is never called."""
+def compile_vjp(dtype, name, field="mpnode"):
+    """One tiny VJP of ``field`` through driver ``name`` ("vjp_blocks", "vjp_blocks_recompute" or
+    "vjp_stagewise") in ``dtype``, from stand-in states (the reverse pass's types are all that
+    matter here): numba compiles the VJP driver and its callees into the on-disk cache, and the
+    rollout driver is never called."""
     spec = FieldSpec(kind=field, state_dim=2, message_dim=2 if field == "mpnode" else 0, hidden=4, dt=0.1)
     theta = np.zeros(n_params(spec), dtype)
     graph = Graph.from_edges(3, [(0, 1), (1, 2)])
-    plan = plan_for(graph, spec, theta.dtype, driver)
+    plan = plan_for(graph, spec, theta.dtype, "stagewise" if name == "vjp_stagewise" else "blocks")
     grid = time_grid(spec, 1, 3, theta.dtype, None)
     u = checked_controls(spec, graph, None, 1, 3, theta.dtype)
     n_states = int(grid[0].sum()) + 1
     states = np.zeros((n_states, 3, spec.state_width), dtype)
-    kept = _stage_caches(spec, n_states - 1, 3, theta) if driver == "blocks" else None
+    kept = None if name == "vjp_stagewise" else _stage_caches(spec, n_states - 1 if name == "vjp_blocks" else 0, 3,
+                                                              theta)
     _reverse(spec, theta, plan, u, grid, states, kept, np.zeros((2, 3, spec.state_dim), dtype))
 
 

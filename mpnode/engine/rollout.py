@@ -101,16 +101,15 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
     states = _touched((n_states, m if keep_states else 0, spec.state_width), theta.dtype)
     zend = np.empty_like(z0)
     g = plan.kernel_graph()
-    kept = None
+    kept = None if plan.blocks is None else _stage_caches(spec, n_states - 1, m, theta)
     l2s, field = _field(spec)
     if keep_states:  # a VJP follows: its driver compiles on the other core while this one compiles the rollout's
-        compiling.compile_vjp_ahead(theta.dtype, plan.blocks is None, field)
+        compiling.compile_vjp_ahead(theta.dtype, _vjp_driver(plan, _kept_any(kept)), field)
     compiling.before_call("rollout_stagewise" if plan.blocks is None else "rollout_blocks", theta.dtype, field)
     with single_threaded_blas():
         if plan.blocks is None:
             kernels.rollout_stagewise(theta, spec.dims, l2s, z0, u, g, nsub, hstep, out, states, zend)
         else:
-            kept = _stage_caches(spec, n_states - 1, m, theta)
             run_blocks(lambda b0, b1: kernels.rollout_blocks(
                 theta, spec.dims, l2s, b0, b1, z0, u, g, plan.blocks, plan.dense_n, plan.dense_off, plan.dense_AT,
                 nsub, hstep, out, states, zend, kept), len(plan.blocks) - 1)
@@ -129,21 +128,29 @@ KEEP_CACHES_BYTES = 128 * 2**20
 _caches_buffers = {}
 
 
-def _stage_caches(spec, n_rk4_steps, m, theta):
-    """The arrays rollout_blocks fills with every RK4 step's stage caches (rows per
-    `kernels.rk4.block_caches`), views of one buffer; arrays without rows when there is nothing
-    to keep: no VJP asked, or more than KEEP_CACHES_BYTES."""
-    none = tuple(np.empty((0, 0), theta.dtype) for _ in range(5))  # the kernels' five caches
+def _caches_layout(spec, n_rk4_steps, m, dtype):
+    """(rows, widths, padded sizes) of the five stage caches of every RK4 step, or None when there
+    is nothing to keep: no VJP asked, or more than KEEP_CACHES_BYTES."""
     if n_rk4_steps <= 0:
-        return none
+        return None
     from . import kernels
 
     rows = 4 * n_rk4_steps * m
-    widths = [c.shape[2] for c in kernels.caches(spec.dims, 1, 0, theta)]
-    lanes = 64 // theta.itemsize  # every array starts on a 64-byte boundary, as the kernels' own
+    widths = [c.shape[2] for c in kernels.caches(spec.dims, 1, 0, np.empty(0, dtype))]
+    lanes = 64 // np.dtype(dtype).itemsize  # every array starts on a 64-byte boundary, as the kernels' own
     padded = [-(-rows * w // lanes) * lanes for w in widths]
-    if sum(padded) * theta.itemsize > KEEP_CACHES_BYTES:
-        return none
+    return None if sum(padded) * np.dtype(dtype).itemsize > KEEP_CACHES_BYTES else (rows, widths, padded)
+
+
+def _stage_caches(spec, n_rk4_steps, m, theta):
+    """The arrays rollout_blocks fills with every RK4 step's stage caches (rows per
+    `kernels.rk4.block_caches`), views of one buffer; arrays without rows when there is nothing
+    to keep (`_caches_layout`)."""
+    layout = _caches_layout(spec, n_rk4_steps, m, theta.dtype)
+    if layout is None:
+        return tuple(np.empty((0, 0), theta.dtype) for _ in range(5))  # the kernels' five caches
+    rows, widths, padded = layout
+    lanes = 64 // theta.itemsize
     buf = _caches_buffers.pop(theta.dtype, None)  # popped: no other thread's rollout takes it meanwhile
     if buf is None or sys.getrefcount(buf) > 2 or buf.size < sum(padded) + lanes:  # 2: `buf` and the call's
         buf = np.empty(sum(padded) + lanes, theta.dtype)
@@ -273,12 +280,30 @@ def integrate_with_vjp(spec, theta, z0, graph, u=None, n_steps=1, driver="auto",
     return x, vjp
 
 
-def compile_vjp_ahead(spec, dtype, graph, driver="auto", ordering="auto"):
-    """Have the VJP driver that ``graph`` needs compile on the other core (`compiling`), if it is
-    not compiled yet, while this process goes on (a training run's first validation, say)."""
+def compile_vjp_ahead(spec, dtype, graph, n_steps=1, driver="auto", ordering="auto"):
+    """Have the VJP driver that a rollout of ``n_steps`` on ``graph`` needs compile on the other core
+    (`compiling`), if it is not compiled yet, while this process goes on (a training run's first
+    validation, say)."""
     if spec.kind == "node":
         spec, _, _, graph = _whole_systems(spec, np.zeros((graph.n_nodes, spec.state_dim)), None, graph)
-    compiling.compile_vjp_ahead(dtype, plan_for(graph, spec, dtype, driver, ordering).blocks is None, _field(spec)[1])
+    plan = plan_for(graph, spec, dtype, driver, ordering)
+    n_rk4_steps = int(time_grid(spec, n_steps, graph.n_nodes, dtype, None)[0].sum())
+    keeps = _caches_layout(spec, n_rk4_steps, graph.n_nodes, dtype) is not None
+    compiling.compile_vjp_ahead(dtype, _vjp_driver(plan, keeps), _field(spec)[1])
+
+
+def _vjp_driver(plan, keeps_caches, edge_weights=False, l2s=None):
+    """The reverse driver for a rollout planned so: the stagewise one for one large graph; the block
+    one reading the kept stage caches, or recomputing the stages (`kernels.rk4.vjp_blocks`) where
+    none were kept, or for an MP-NODE's edge weights (their cotangent needs the stages' messages)."""
+    if plan.blocks is None:
+        return "vjp_stagewise"
+    return "vjp_blocks" if keeps_caches and not (edge_weights and l2s is None) else "vjp_blocks_recompute"
+
+
+def _kept_any(kept):
+    """Did the rollout keep its stage caches (`_stage_caches`; None for the stagewise driver)?"""
+    return kept is not None and kept[0].shape[0] > 0
 
 
 def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False, edge_weights=False):
@@ -301,11 +326,13 @@ def _reverse(spec, theta, plan, u, grid, states, kept, gx, controls=False, edge_
     g, gt = plan.kernel_graph(), plan.kernel_transposed()
     nsub, hstep = grid
     l2s, field = _field(spec)
-    compiling.before_call("vjp_stagewise" if plan.blocks is None else "vjp_blocks", theta.dtype, field)
+    name = _vjp_driver(plan, _kept_any(kept), edge_weights, l2s)
+    compiling.before_call(name, theta.dtype, field)
     with single_threaded_blas():
         if plan.blocks is None:
             kernels.vjp_stagewise(theta, spec.dims, l2s, u, g, gt, nsub, hstep, states, gx, gthetas, gx0, gu)
-        else:
+        else:  # the block driver takes the states or the kept caches, the other None: two drivers compiled apart
+            states, kept = (states, None) if name == "vjp_blocks_recompute" else (None, kept)
             run_blocks(lambda b0, b1: kernels.vjp_blocks(
                 theta, spec.dims, l2s, b0, b1, u, g, gt, plan.blocks, plan.dense_n, plan.dense_off, plan.dense_A,
                 plan.dense_AT, nsub, hstep, states, kept, gx, gthetas, gx0, gu, gw), len(plan.blocks) - 1)

@@ -343,7 +343,7 @@ def _compile_ahead(model, parts, config):
     part = next((p for p in parts if p.n), None)
     if part is not None:
         sel = np.arange(min(config.batch_size, part.n))
-        engine.compile_vjp_ahead(model.spec, model.dtype, part.graph(sel))
+        engine.compile_vjp_ahead(model.spec, model.dtype, part.graph(sel), part.x.shape[0] - 1)
 
 
 def start_state(model, data, config, output, resume, sources):

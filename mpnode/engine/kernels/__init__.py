@@ -65,3 +65,8 @@ try:
     )
 finally:
     numba.config.CACHE_DIR = _user_cache_dir
+
+from . import feature_major, kinematics, l2s_field, layers, mpnode_field, reorder, rk4  # noqa: E402
+
+#: the modules that declare compiled functions
+MODULES = (feature_major, kinematics, l2s_field, layers, mpnode_field, reorder, rk4)

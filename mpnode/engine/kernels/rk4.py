@@ -29,8 +29,8 @@ The forward drivers start from a full state z0 (M, dz) and return the final one 
 ``zend`` (a rollout continues exactly where the last one stopped); they keep the state
 after every RK4 step when given a ``states`` array (sum(nsub)+1, M, dz); the reverse
 drivers take the cotangent of every output state, GX (T+1, M, dx), read each step's stage
-caches where the forward kept them (block drivers, given ``kept`` arrays with rows) or
-recompute them from the kept state, and return the parameter cotangent (one buffer per block or
+caches where the forward kept them (block drivers, given ``kept``: a driver compiled apart, without
+the forward stage) or recompute them from the kept state, and return the parameter cotangent (one buffer per block or
 tile, reduced by the caller: deterministic, no races), the initial state's and, when the
 caller gives GU (T, M, du) rows, the controls' (each node's rows are its own: no races
 either).  ``dims``: the model's integers (slots in mpnode.engine.dims); ``graph`` =
@@ -253,21 +253,21 @@ def send_vjp_tile(theta, dims, l2s, gS, gh0, i0, i1, zoff, C, slot, r0, r1, gthe
 
 
 @njit(inline="always", **JIT)
-def substep_vjp_range(h, theta, dims, l2s, zstart, a, u, graph, tgraph, lo, hi, zoff, AT, A, sums, work, C, recompute,
-                      gtheta, gu, gw):
+def substep_vjp_range(h, theta, dims, l2s, zstart, a, u, graph, tgraph, lo, hi, zoff, AT, A, sums, work, C, gtheta, gu,
+                      gw):
     """Reverse one RK4 step of the closed range lo..hi: returns the cotangent of its start state.
     Inlined into vjp_blocks, so that LLVM optimises its callees once, not twice (docs/evidence/cold-start.md).
 
-    zstart: the state at the step's start; a: the cotangent of the state at its end.  The
-    four stages' caches C are the forward's, or, when ``recompute``, recomputed from zstart
-    into C; then the stages are walked backwards.  u is held over the step, so its cotangent
+    zstart: the state at the step's start, or None; a: the cotangent of the state at its end.
+    The four stages' caches C are the forward's when zstart is None, else recomputed from
+    zstart into C; then the stages are walked backwards.  u is held over the step, so its cotangent
     (added into gu unless empty) sums over the four stages; the edge weights' (indexed as the
     CSR entries) is added into gw unless it is empty, and then an MP-NODE's stages must be
     recomputed (their input messages are in no cache).
     """
     z, za, zb, acc, gagg, gS, gh0, smsg = work
     dx, self_msg = dims[DX], dims[SELF_MSG]
-    if recompute:
+    if zstart is not None:
         copy_into(z, zstart)
         substep_range(h, theta, dims, l2s, z, za, zb, acc, u, graph, lo, hi, zoff, AT, sums, C, smsg)
     gz = a.copy()
@@ -378,19 +378,20 @@ def vjp_blocks(theta, dims, l2s, b0, b1, U, graph, tgraph, block_ptr, dense_n, d
     """Reverse pass of blocks b0..b1: cotangents GX (T+1, M, dx) of the output states -> gthetas[b] (block b's
     parameter cotangent) and gx0 (M, dx); the controls' cotangent added into GU (T, M, du)
     unless GU has no rows (T, 0, du), the edge weights' into GW (E,) unless it is empty.
-    ``states`` and ``kept`` from rollout_blocks: without kept caches, or for the edge weights'
-    cotangent of an MP-NODE, each step's stages are recomputed from its state."""
+    One of ``states`` and ``kept`` (from rollout_blocks) is None: with ``kept``, every step's stage
+    caches, the reverse pass reads them; with ``states``, every step's start state, it recomputes
+    each step's stages (as the edge weights' cotangent of an MP-NODE needs).  numba drops a branch
+    on an argument that is None, so a driver compiled for kept caches holds no forward stage
+    (docs/evidence/cold-start.md)."""
     dx = dims[DX]
     T = GX.shape[0] - 1
     sw = sent_width(dims)
     edge_messages = GW.shape[0] > 0 and l2s is None
-    recompute = kept[0].shape[0] == 0 or edge_messages
     for b in range(b0, b1):
         lo = block_ptr[b]
         hi = block_ptr[b + 1]
         n = hi - lo
-        z, za, zb, acc, C = _block_work(dims, n, GX, 4 if recompute else 0)
-        P = block_caches(kept, GX.shape[1], lo, hi)
+        z, za, zb, acc, C = _block_work(dims, n, GX, 0 if states is None else 4)
         gS = np.empty((n if l2s is not None else 0, sw), GX.dtype)
         gh0 = np.empty((n if l2s is not None else 0, dims[HIDDEN]), GX.dtype)
         smsg = np.empty((4, n if edge_messages else 0, dims[DM]), GX.dtype)
@@ -401,14 +402,18 @@ def vjp_blocks(theta, dims, l2s, b0, b1, U, graph, tgraph, block_ptr, dense_n, d
         gtheta = gthetas[b]
         gtheta[:] = 0
         gz = np.zeros_like(z)
-        k = states.shape[0] - 1
+        k = nsub.sum()
         for t in range(T - 1, -1, -1):
             add_into(gz[:, :dx], GX[t + 1, lo:hi])
             for s in range(nsub[t] - 1, -1, -1):
                 k -= 1
-                Ck = C if recompute else step_caches(P, k)
-                gz = substep_vjp_range(hstep[t], theta, dims, l2s, states[k, lo:hi], gz, U[t], graph, tgraph, lo, hi,
-                                       lo, AT, A, sums, work, Ck, recompute, gtheta, GU[t], GW)
+                if states is not None:
+                    gz = substep_vjp_range(hstep[t], theta, dims, l2s, states[k, lo:hi], gz, U[t], graph, tgraph, lo,
+                                           hi, lo, AT, A, sums, work, C, gtheta, GU[t], GW)
+                if kept is not None:
+                    Ck = step_caches(block_caches(kept, GX.shape[1], lo, hi), k)
+                    gz = substep_vjp_range(hstep[t], theta, dims, l2s, None, gz, U[t], graph, tgraph, lo, hi, lo, AT,
+                                           A, sums, work, Ck, gtheta, GU[t], GW)
         copy_into(gx0[lo:hi], gz[:, :dx])
         add_into(gx0[lo:hi], GX[0, lo:hi])
 
