@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mpnode.base.graph import Graph
-from mpnode.engine import compiling, forward_with_vjp
+from mpnode.engine import compiling, forward, forward_with_vjp
 from mpnode.model import Model
 
 
@@ -113,3 +113,43 @@ def test_a_compile_under_way_elsewhere_is_waited_for_and_loaded_not_compiled_aga
         assert tiny.one_more(1) == 2  # compiled here and saved to numba's cache, then the lock released
     hits, misses = map(int, waiter.communicate(timeout=60)[0].split())
     assert (hits, misses) == (1, 0) and waiter.returncode == 0
+
+
+def test_a_rollout_no_vjp_follows_has_the_neighbour_sums_compiled_ahead(fresh_state, monkeypatch):
+    started = []
+    monkeypatch.setattr(compiling.subprocess, "Popen", lambda *a, **k: started.append(a[0]))
+    monkeypatch.setattr(compiling, "is_compiled", lambda name, dtype, field: False)
+    model = Model.create(state_dim=2, message_dim=2, hidden=4, dt=0.1)
+    graph = Graph.from_edges(3, [(0, 1), (1, 2)])
+    forward(model.spec, model.theta, np.zeros((3, 2), np.float32), graph, None, 2)
+    assert [cmd[-3:] for cmd in started] == [["float32", "sums", "mpnode"]]
+
+
+SUMS_THEN_ROLLOUT = """
+import numpy as np
+from mpnode.base.graph import Graph
+from mpnode.engine import forward
+from mpnode.engine.kernels import layers
+from mpnode.engine.precompile import compile_sums
+from mpnode.model import Model
+
+compile_sums(np.float32)
+print(len(layers.aggregate_tile._cache._cache_file._load_index()))
+model = Model.create(state_dim=2, message_dim=3, hidden=4, dt=0.1)
+forward(model.spec, model.theta, np.zeros((40, 2), np.float32), Graph.from_edges(40, [(i, (i + 1) % 40) for i in range(40)]), None, 2)
+print(len(layers.aggregate_tile._cache._cache_file._load_index()))
+"""
+
+
+@pytest.mark.slow
+def test_the_neighbour_sums_compiled_ahead_are_the_ones_a_rollout_calls(tmp_path):
+    """precompile.compile_sums gives the sums the types the rollout gives them: a rollout after it,
+    in an empty cache, compiles no second version of them (a compile of its own, about a minute)."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path), **{compiling.VARIABLE: "0"})
+    out = subprocess.run([sys.executable, "-c", SUMS_THEN_ROLLOUT], env=env, capture_output=True, text=True,
+                         timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["1", "1"]  # aggregate_tile's cache index: one signature, then still one

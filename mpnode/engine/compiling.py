@@ -71,16 +71,29 @@ def compile_vjp_ahead(dtype, name, field="mpnode"):
     """Start compiling VJP driver ``name`` (`DRIVERS`) for ``dtype`` and ``field`` in another process
     unless it is compiled (or ahead-compiling is switched off): the caller goes on to compile the
     rollout."""
-    key = (name, np.dtype(dtype).name, field)
+    _start_ahead(name, dtype, field, name)
+
+
+def compile_sums_ahead(dtype, field="mpnode"):
+    """Before a rollout that no VJP follows (`mpnode eval`, say) compiles on one core: have another
+    process compile the MP-NODE field's neighbour sums (`precompile.compile_sums`), which the
+    rollout then loads, unless the rollout is compiled."""
+    if field == "mpnode":
+        _start_ahead("sums", dtype, field, "rollout_blocks")
+
+
+def _start_ahead(what, dtype, field, driver):
+    """Start ``python -m mpnode.engine.precompile DTYPE WHAT FIELD`` unless ``driver`` is compiled."""
+    key = (what, np.dtype(dtype).name, field)
     if key in _known or key in _pending or os.environ.get(VARIABLE, "1") == "0":
         return
-    if is_compiled(name, dtype, field):
+    if is_compiled(driver, dtype, field):
         _known.add(key)
         return
     if not serialise_cache_writes():
         return
-    try:  # a failure there only means this process compiles the VJP itself: nothing to show
-        proc = subprocess.Popen([sys.executable, "-m", "mpnode.engine.precompile", key[1], name, field],
+    try:  # a failure there only means this process compiles it all itself: nothing to show
+        proc = subprocess.Popen([sys.executable, "-m", "mpnode.engine.precompile", key[1], what, field],
                                 stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError:  # no interpreter to start (an embedded Python): compile here, in turn
         return

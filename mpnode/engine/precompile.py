@@ -1,6 +1,7 @@
 """The process `compiling.compile_vjp_ahead` starts: ``python -m mpnode.engine.precompile float32 vjp_blocks
 mpnode`` compiles one VJP driver (`compiling.DRIVERS`), for one field ("mpnode" or "l2s"), into numba's
-on-disk cache and exits."""
+on-disk cache and exits; ``... float32 sums mpnode``, which `compiling.compile_sums_ahead` starts, the
+neighbour sums alone (`compile_sums`)."""
 import sys
 
 import numpy as np
@@ -33,6 +34,23 @@ def compile_vjp(dtype, name, field="mpnode"):
     _reverse(spec, theta, plan, u, grid, states, kept, np.zeros((2, 3, spec.state_dim), dtype))
 
 
+def compile_sums(dtype):
+    """The MP-NODE field's neighbour sums (`kernels.layers.aggregate_tile`, the largest function a
+    rollout compiles), through the reverse pass's transpose of them, which calls them with the
+    types the rollout does: a rollout compiling meanwhile in another process loads them instead
+    of compiling them (`compiling._OneCompileEach`)."""
+    from .dims import DX, SELF_MSG
+    from .kernels import layers
+
+    spec = FieldSpec(kind="mpnode", state_dim=2, message_dim=2, hidden=4, dt=0.1)
+    plan = plan_for(Graph.from_edges(3, [(0, 1), (1, 2)]), spec, np.dtype(dtype), "blocks")
+    sums, target = np.zeros((3, spec.message_dim), dtype), np.zeros((3, spec.state_width), dtype)
+    layers.transpose_tile(sums, *plan.kernel_transposed(), spec.dims[SELF_MSG], 0, 3, 0, target, spec.dims[DX])
+
+
 if __name__ == "__main__":
     serialise_cache_writes()
-    compile_vjp(np.dtype(sys.argv[1]), sys.argv[2], sys.argv[3])
+    if sys.argv[2] == "sums":
+        compile_sums(np.dtype(sys.argv[1]))
+    else:
+        compile_vjp(np.dtype(sys.argv[1]), sys.argv[2], sys.argv[3])

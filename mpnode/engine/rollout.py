@@ -105,6 +105,8 @@ def _run(spec, theta, z0, graph, u, n_steps, driver, keep_states, ordering, inte
     l2s, field = _field(spec)
     if keep_states:  # a VJP follows: its driver compiles on the other core while this one compiles the rollout's
         compiling.compile_vjp_ahead(theta.dtype, _vjp_driver(plan, _kept_any(kept)), field)
+    elif plan.blocks is not None:  # none does: the other core compiles the neighbour sums
+        compiling.compile_sums_ahead(theta.dtype, field)
     compiling.before_call("rollout_stagewise" if plan.blocks is None else "rollout_blocks", theta.dtype, field)
     with single_threaded_blas():
         if plan.blocks is None:
