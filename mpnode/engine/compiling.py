@@ -30,7 +30,7 @@ from mpnode.base.atomic import atomic_path
 VARIABLE = "MPNODE_COMPILE_AHEAD"
 #: seconds a first run waits for its compile on a 2-core machine (docs/evidence/cold-start.md), until this
 #: machine has its own figure
-DEFAULT_SECONDS = 80.0
+DEFAULT_SECONDS = 60.0
 _TIMES_FILE = "mpnode-compile-seconds.json"
 #: the drivers by name -> the function of `kernels.rk4` compiled for it: the block VJP is compiled
 #: apart for kept stage caches (its ``states`` None) and for recomputed stages (its ``kept`` None)
