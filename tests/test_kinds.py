@@ -162,12 +162,13 @@ def test_node_vjp_matches_finite_differences():
 
 
 @pytest.mark.parametrize("name", ["mpnode-mean-self-linear", "l2s-mean-self", "node", "mpnode-irregular"])
-def test_the_reverse_pass_from_kept_stage_caches_is_the_recomputing_one_bit_for_bit(monkeypatch, name):
+def test_the_reverse_pass_from_kept_stage_caches_matches_the_recomputing_one(monkeypatch, name):
     """The block driver's reverse pass reads every step's stage caches from the forward when
     they fit in rollout.KEEP_CACHES_BYTES, and recomputes them from the kept states otherwise:
     the same numbers either way (parameters, initial state, controls), for every kind, on
     dense and CSR blocks, with substeps, and with each node's own output times (output
-    intervals of 6, 1 and 0 RK4 steps)."""
+    intervals of 6, 1 and 0 RK4 steps).  The same to rounding, not to the bit: the two reverse
+    passes are two compiled drivers, and LLVM may order a sum differently in each."""
     from mpnode.engine import kernels, rollout
 
     spec = node_spec(4) if name == "node" else KIND_SPECS.get(name, spec_())
@@ -198,7 +199,7 @@ def test_the_reverse_pass_from_kept_stage_caches_is_the_recomputing_one_bit_for_
 
     kept, recomputed = gradients(2**30), gradients(0)
     for a, b in zip(kept, recomputed):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
     assert np.abs(kept[1]).max() > 0 and np.abs(kept[3]).max() > 0
     assert np.isnan(gradients(2**30, poison=True)[1]).any()  # the reverse pass read the kept caches
     for a, b in zip(gradients(0, poison=True), recomputed):  # and without them, it recomputed
