@@ -9,8 +9,8 @@ compiles the rollout, and the VJP's first call (`before_call`) waits for it and 
 wrote.  The two drivers share callees (the neighbour sums, the products): each is compiled by
 whichever process reaches it first, the other waits and loads it (`_OneCompileEach`).  numba
 rewrites a function's cache index with no lock, so two processes saving overloads of one
-function at once can lose an entry or leave one naming the other's code (numba issue 4807):
-both processes' cache writes take turns (`serialise_cache_writes`), and where that cannot be
+function at once can lose an entry or leave one naming the other's code: both processes'
+cache writes take turns (`serialise_cache_writes`), and where that cannot be
 done (no fcntl) everything compiles here, in turn.
 
 `set_announcer` lets the command line say what is happening ("compiling the MP-NODE kernels for
@@ -32,10 +32,12 @@ VARIABLE = "MPNODE_COMPILE_AHEAD"
 #: machine has its own figure
 DEFAULT_SECONDS = 60.0
 _TIMES_FILE = "mpnode-compile-seconds.json"
-#: the drivers by name -> the function of `kernels.rk4` compiled for it: the block VJP is compiled
-#: apart for kept stage caches (its ``states`` None) and for recomputed stages (its ``kept`` None)
-DRIVERS = {"rollout_blocks": "rollout_blocks", "rollout_stagewise": "rollout_stagewise", "vjp_blocks": "vjp_blocks",
-           "vjp_blocks_recompute": "vjp_blocks", "vjp_stagewise": "vjp_stagewise"}
+#: the drivers by name -> (the function of `kernels.rk4`, whether its ``states`` is None, or None where
+#: that does not tell drivers apart): the block VJP is compiled apart for kept stage caches (its
+#: ``states`` None) and for recomputed stages (its ``kept`` None)
+DRIVERS = {"rollout_blocks": ("rollout_blocks", None), "rollout_stagewise": ("rollout_stagewise", None),
+           "vjp_blocks": ("vjp_blocks", True), "vjp_blocks_recompute": ("vjp_blocks", False),
+           "vjp_stagewise": ("vjp_stagewise", None)}
 _VJP_STATES = 15  # the position of vjp_blocks's ``states``
 _FIELD_NAMES = {"mpnode": "MP-NODE", "l2s": "L2S"}
 
@@ -224,13 +226,13 @@ def is_compiled(name, dtype, field="mpnode"):
 
     from .kernels import rk4
 
-    disp = getattr(rk4, DRIVERS[name])
+    function, states_none = DRIVERS[name]
+    disp = getattr(rk4, function)
     want = types.float32 if np.dtype(dtype) == np.float32 else types.float64
 
     def match(sig):  # (theta, dims, l2s, ...): l2s is None for the MP-NODE field, an int64 for L2S
         return (sig[0].dtype == want and isinstance(sig[2], types.NoneType) == (field == "mpnode")
-                and (name != "vjp_blocks" or isinstance(sig[_VJP_STATES], types.NoneType))
-                and (name != "vjp_blocks_recompute" or not isinstance(sig[_VJP_STATES], types.NoneType)))
+                and (states_none is None or isinstance(sig[_VJP_STATES], types.NoneType) == states_none))
 
     if any(match(sig) for sig in disp.signatures):
         return True

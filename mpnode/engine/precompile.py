@@ -21,16 +21,15 @@ def compile_vjp(dtype, name, field="mpnode"):
     "vjp_stagewise") in ``dtype``, from stand-in states (the reverse pass's types are all that
     matter here): numba compiles the VJP driver and its callees into the on-disk cache, and the
     rollout driver is never called."""
-    spec = FieldSpec(kind=field, state_dim=2, message_dim=2 if field == "mpnode" else 0, hidden=4, dt=0.1)
+    spec, graph = _tiny(field)
     theta = np.zeros(n_params(spec), dtype)
-    graph = Graph.from_edges(3, [(0, 1), (1, 2)])
     plan = plan_for(graph, spec, theta.dtype, "stagewise" if name == "vjp_stagewise" else "blocks")
     grid = time_grid(spec, 1, 3, theta.dtype, None)
     u = checked_controls(spec, graph, None, 1, 3, theta.dtype)
     n_states = int(grid[0].sum()) + 1
     states = np.zeros((n_states, 3, spec.state_width), dtype)
-    kept = None if name == "vjp_stagewise" else _stage_caches(spec, n_states - 1 if name == "vjp_blocks" else 0, 3,
-                                                              theta)
+    kept_steps = n_states - 1 if name == "vjp_blocks" else 0  # no caches kept: the stages are recomputed
+    kept = None if name == "vjp_stagewise" else _stage_caches(spec, kept_steps, 3, theta)
     _reverse(spec, theta, plan, u, grid, states, kept, np.zeros((2, 3, spec.state_dim), dtype))
 
 
@@ -42,10 +41,16 @@ def compile_sums(dtype):
     from .dims import DX, SELF_MSG
     from .kernels import layers
 
-    spec = FieldSpec(kind="mpnode", state_dim=2, message_dim=2, hidden=4, dt=0.1)
-    plan = plan_for(Graph.from_edges(3, [(0, 1), (1, 2)]), spec, np.dtype(dtype), "blocks")
+    spec, graph = _tiny("mpnode")
+    plan = plan_for(graph, spec, np.dtype(dtype), "blocks")
     sums, target = np.zeros((3, spec.message_dim), dtype), np.zeros((3, spec.state_width), dtype)
     layers.transpose_tile(sums, *plan.kernel_transposed(), spec.dims[SELF_MSG], 0, 3, 0, target, spec.dims[DX])
+
+
+def _tiny(field):
+    """A tiny model of ``field`` and a 3-node path: only the kernels' argument types matter here."""
+    spec = FieldSpec(kind=field, state_dim=2, message_dim=2 if field == "mpnode" else 0, hidden=4, dt=0.1)
+    return spec, Graph.from_edges(3, [(0, 1), (1, 2)])
 
 
 if __name__ == "__main__":

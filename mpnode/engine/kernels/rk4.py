@@ -402,6 +402,8 @@ def vjp_blocks(theta, dims, l2s, b0, b1, U, graph, tgraph, block_ptr, dense_n, d
         gtheta = gthetas[b]
         gtheta[:] = 0
         gz = np.zeros_like(z)
+        if kept is not None:
+            P = block_caches(kept, GX.shape[1], lo, hi)
         k = nsub.sum()
         for t in range(T - 1, -1, -1):
             add_into(gz[:, :dx], GX[t + 1, lo:hi])
@@ -411,9 +413,8 @@ def vjp_blocks(theta, dims, l2s, b0, b1, U, graph, tgraph, block_ptr, dense_n, d
                     gz = substep_vjp_range(hstep[t], theta, dims, l2s, states[k, lo:hi], gz, U[t], graph, tgraph, lo,
                                            hi, lo, AT, A, sums, work, C, gtheta, GU[t], GW)
                 if kept is not None:
-                    Ck = step_caches(block_caches(kept, GX.shape[1], lo, hi), k)
                     gz = substep_vjp_range(hstep[t], theta, dims, l2s, None, gz, U[t], graph, tgraph, lo, hi, lo, AT,
-                                           A, sums, work, Ck, gtheta, GU[t], GW)
+                                           A, sums, work, step_caches(P, k), gtheta, GU[t], GW)
         copy_into(gx0[lo:hi], gz[:, :dx])
         add_into(gx0[lo:hi], GX[0, lo:hi])
 
