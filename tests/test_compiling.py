@@ -85,7 +85,8 @@ def one_more(x):
 WAITER = """
 import sys
 sys.path.insert(0, sys.argv[1])
-from mpnode.engine import compiling
+from mpnode.engine import codegen, compiling
+codegen.build_numba_codegen()  # the test's process built numba's generator so (its vector width is in the cache's key)
 import lock_probe as tiny
 tiny.one_more._cache = compiling._OneCompileEach(tiny.one_more._cache)
 print("calling", flush=True)
