@@ -1,8 +1,9 @@
 """Dense layers on feature-major tiles: a tile's activations are (width, n) arrays.
 
 With the nodes along the contiguous axis every product vectorises over nodes, and the sum
-over the layer's inputs is unrolled at compile time: one compiled kernel per chunk width
-(8, 4, 2, 1): a width splits into 8s, then the binary digits of the rest (13 = 8 + 4 + 1).
+over the layer's inputs is unrolled at compile time: one loop per chunk width (8, 4, 2, 1),
+all four inlined into `product`: a width splits into 8s, then the binary digits of the rest
+(13 = 8 + 4 + 1).
 For each output row the running sums of a chunk stay in registers (one FMA per input, the
 weight broadcast from memory) and the row is stored once per chunk.  A chunk's sums are one
 chain of dependent FMAs, so a short chunk leaves the core more chains in flight: on an Intel
@@ -35,20 +36,21 @@ def aligned_empty(shape, like):
 
 def _partial_product(width):
     """YT[j, :] = (b[j] or YT[j, :]) + sum over k0 <= k < k0 + width of W[k, j] XT[k, :],
-    for every output j; ``width`` is a compile-time constant (the loop over k unrolls)."""
+    for every output j; ``width`` is a compile-time constant (the loop over k unrolls).
+    Inlined, and indices rather than views of W and XT: a call, like a view, counts a reference
+    to each array it is given (an atomic add and its release), which on a small block's short
+    rows cost more than a thin layer's sums (docs/evidence/speed.md#references-counted-on-small-blocks)."""
 
-    @njit(**JIT)
+    @njit(inline="always", **JIT)
     def partial_product(W, b, XT, k0, YT, first):
         c, n = YT.shape
         zero = YT.dtype.type(0)
-        Wk = W[k0:k0 + width]  # views: an offset inside the unrolled loop stops it vectorising
-        Xk = XT[k0:k0 + width]
         for j in range(c):
             bj = b[j] if b.shape[0] > 0 else zero
             for r in range(n):  # the conditions are the same for every r: LLVM hoists them
                 s = bj if first else YT[j, r]
                 for k in range(width):
-                    s += Wk[k, j] * Xk[k, r]
+                    s += W[k0 + k, j] * XT[k0 + k, r]
                 YT[j, r] = s
 
     return partial_product
@@ -141,45 +143,47 @@ def param_cotangent(XT, GYT, gW, gb):
             s += GYT[j, r]
         gb[j] += s
     for k in range(0, a - 1, 2):
-        _two_inputs(XT[k], XT[k + 1], GYT, gW[k], gW[k + 1])
-    if a % 2:  # the last input of an odd width, paired with itself (the copy's sums discarded)
-        _two_inputs(XT[a - 1], XT[a - 1], GYT, gW[a - 1], np.empty(c, gW.dtype))
+        _two_inputs(XT, k, k + 1, GYT, gW)
+    if a % 2:  # the last input of an odd width, paired with itself (the copy's sums not written)
+        _two_inputs(XT, a - 1, a - 1, GYT, gW)
 
 
 @njit(**JIT)
-def _two_inputs(x, y, GYT, gx, gy):
-    """gx[j] += x . GYT[j] and gy[j] += y . GYT[j]: a 2 x 4 block of sums per pass over the
-    nodes, every load shared by two or four of them, eight independent FMA chains in flight
-    (four left an Intel core waiting on their latency: docs/evidence/speed.md#shorter-chains-for-intel-cores).
-    x may be y; gx and gy must be distinct arrays."""
+def _two_inputs(XT, k, m, GYT, gW):
+    """gW[k, j] += XT[k] . GYT[j] and, unless m is k, gW[m, j] += XT[m] . GYT[j]: a 2 x 4 block of
+    sums per pass over the nodes, every load shared by two or four of them, eight independent FMA
+    chains in flight (four left an Intel core waiting on their latency:
+    docs/evidence/speed.md#shorter-chains-for-intel-cores).  Indices, not row views, as in
+    `_partial_product`."""
     c, n = GYT.shape
     zero = GYT.dtype.type(0)
     c4 = c - c % 4
     for j in range(0, c4, 4):
-        g0, g1, g2, g3 = GYT[j], GYT[j + 1], GYT[j + 2], GYT[j + 3]
         s0 = s1 = s2 = s3 = t0 = t1 = t2 = t3 = zero
         for r in range(n):
-            xr, yr = x[r], y[r]
-            s0 += xr * g0[r]
-            s1 += xr * g1[r]
-            s2 += xr * g2[r]
-            s3 += xr * g3[r]
-            t0 += yr * g0[r]
-            t1 += yr * g1[r]
-            t2 += yr * g2[r]
-            t3 += yr * g3[r]
-        gx[j] += s0
-        gx[j + 1] += s1
-        gx[j + 2] += s2
-        gx[j + 3] += s3
-        gy[j] += t0
-        gy[j + 1] += t1
-        gy[j + 2] += t2
-        gy[j + 3] += t3
+            xr, yr = XT[k, r], XT[m, r]
+            s0 += xr * GYT[j, r]
+            s1 += xr * GYT[j + 1, r]
+            s2 += xr * GYT[j + 2, r]
+            s3 += xr * GYT[j + 3, r]
+            t0 += yr * GYT[j, r]
+            t1 += yr * GYT[j + 1, r]
+            t2 += yr * GYT[j + 2, r]
+            t3 += yr * GYT[j + 3, r]
+        gW[k, j] += s0
+        gW[k, j + 1] += s1
+        gW[k, j + 2] += s2
+        gW[k, j + 3] += s3
+        if m != k:
+            gW[m, j] += t0
+            gW[m, j + 1] += t1
+            gW[m, j + 2] += t2
+            gW[m, j + 3] += t3
     for j in range(c4, c):
         s = t = zero
         for r in range(n):
-            s += x[r] * GYT[j, r]
-            t += y[r] * GYT[j, r]
-        gx[j] += s
-        gy[j] += t
+            s += XT[k, r] * GYT[j, r]
+            t += XT[m, r] * GYT[j, r]
+        gW[k, j] += s
+        if m != k:
+            gW[m, j] += t
