@@ -51,31 +51,35 @@ from mpnode.training.losses import value_and_grad
 
 
 def machine():
-    """Which machine a figure came from: the CPU's model and vector extensions, the BLAS numpy
-    calls (for the GEMM floor) and the threads the kernels run on."""
+    """Which machine a figure came from: the CPU's model, family and vector extensions (a VM may
+    name every AMD EPYC alike; family 25 is Zen 3 or 4, 26 Zen 5), the BLAS numpy calls (for the
+    GEMM floor) and the threads the kernels run on."""
     import platform
 
     from threadpoolctl import threadpool_info
 
     from mpnode.engine.backend import n_threads
 
-    flags, model = set(), platform.processor()
+    flags, model, family = set(), platform.processor(), {}
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
                 key, _, value = line.partition(":")
-                if key.strip() == "model name":
+                key = key.strip()
+                if key == "model name":
                     model = value.strip()
-                elif key.strip() == "flags":
+                elif key == "flags":
                     flags = set(value.split())
+                elif key in ("cpu family", "model") and key not in family:
+                    family[key] = int(value) if value.strip().isdigit() else value.strip()
     except OSError:
         pass
     vectors = [f for f in ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512vl", "avx512_bf16", "amx_tile")
                if f in flags]
     blas = [{k: lib.get(k) for k in ("internal_api", "version", "architecture", "num_threads")}
             for lib in threadpool_info() if lib.get("user_api") == "blas"]
-    return {"cpu": model, "cores": os.cpu_count(), "vector_extensions": vectors, "blas": blas,
-            "numba_threads": n_threads()}
+    return {"cpu": model, "cpu_family": family.get("cpu family"), "cpu_model": family.get("model"),
+            "cores": os.cpu_count(), "vector_extensions": vectors, "blas": blas, "numba_threads": n_threads()}
 
 
 def random_regular(d, n, seed=0):
