@@ -60,7 +60,7 @@ def machine():
 
     from mpnode.engine.backend import n_threads
 
-    flags, model, family = set(), platform.processor(), {}
+    flags, model, ids = set(), platform.processor(), {}
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
@@ -70,15 +70,15 @@ def machine():
                     model = value.strip()
                 elif key == "flags":
                     flags = set(value.split())
-                elif key in ("cpu family", "model") and key not in family:
-                    family[key] = int(value) if value.strip().isdigit() else value.strip()
+                elif key in ("cpu family", "model") and key not in ids:
+                    ids[key] = int(value) if value.strip().isdigit() else value.strip()
     except OSError:
         pass
     vectors = [f for f in ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512vl", "avx512_bf16", "amx_tile")
                if f in flags]
     blas = [{k: lib.get(k) for k in ("internal_api", "version", "architecture", "num_threads")}
             for lib in threadpool_info() if lib.get("user_api") == "blas"]
-    return {"cpu": model, "cpu_family": family.get("cpu family"), "cpu_model": family.get("model"),
+    return {"cpu": model, "cpu_family": ids.get("cpu family"), "cpu_model": ids.get("model"),
             "cores": os.cpu_count(), "vector_extensions": vectors, "blas": blas, "numba_threads": n_threads()}
 
 

@@ -102,7 +102,7 @@ def data_files(folder, workload):
         target = os.path.join(folder, scene)
         paths = [os.path.join(target, f"{member}.h5") for member, _ in SETS[scene].members]
         if not all(os.path.exists(p) for p in paths):
-            os.makedirs(target, exist_ok=True)  # the command writes into a folder that exists
+            os.makedirs(target, exist_ok=True)  # `generate -o DIR/` needs DIR to exist
             subprocess.run(generate + ["-o", target + os.sep], check=True, stdout=sys.stderr)
         return paths
     path = os.path.join(folder, f"{scene}-{trajectories}.h5")

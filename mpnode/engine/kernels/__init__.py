@@ -1,8 +1,8 @@
 """The compiled engine: fields on tiles of nodes (MP-NODE, L2S), RK4 drivers and their adjoint.
 
 Modules: ``layers`` (dense layers, tanh, neighbour sums), ``feature_major`` (products on
-(width, n) tiles, compiled per chunk width: the MP-NODE field's layers and the dense neighbour
-sums), ``mpnode_field`` and ``l2s_field`` (one field each: send, update and their VJPs),
+(width, n) tiles, their sums unrolled per chunk width: the MP-NODE field's layers and the dense
+neighbour sums), ``mpnode_field`` and ``l2s_field`` (one field each: send, update and their VJPs),
 ``kinematics`` (the derivatives a model's kinematics fix, and their VJP), ``rk4`` (the drivers),
 ``reorder`` (node rows between the user's order and the kernels').
 `mpnode.engine` is the Python entry point; nothing else calls these directly.

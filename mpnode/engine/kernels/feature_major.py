@@ -76,7 +76,7 @@ def product(W, b, XT, YT, act=False):
     """YT (c, n) = W^T XT + b, then tanh if ``act``, for W (a, c), XT (a, n); b may be
     empty (no bias).  ``W`` may be a transposed view (the backward pass multiplies by W itself)."""
     a = W.shape[0]
-    k0 = a - a  # an int64 from the start: a literal 0 would have numba compile every chunk twice
+    k0 = a - a  # an int64 from the start, as the loop makes it (a literal 0 would be typed apart)
     while k0 < a:
         width = CHUNKS[0]
         while width > a - k0:
@@ -154,7 +154,7 @@ def _two_inputs(XT, k, m, GYT, gW):
     sums per pass over the nodes, every load shared by two or four of them, eight independent FMA
     chains in flight (four left an Intel core waiting on their latency:
     docs/evidence/speed.md#shorter-chains-for-intel-cores).  Indices, not row views, as in
-    `_partial_product`."""
+    `_partial_product`; still a call of its own (inlining it too was not tried)."""
     c, n = GYT.shape
     zero = GYT.dtype.type(0)
     c4 = c - c % 4
