@@ -139,7 +139,8 @@ from mpnode.model import Model
 compile_sums(np.float32)
 print(len(layers.aggregate_tile._cache._cache_file._load_index()))
 model = Model.create(state_dim=2, message_dim=3, hidden=4, dt=0.1)
-forward(model.spec, model.theta, np.zeros((40, 2), np.float32), Graph.from_edges(40, [(i, (i + 1) % 40) for i in range(40)]), None, 2)
+ring = Graph.from_edges(40, [(i, (i + 1) % 40) for i in range(40)])
+forward(model.spec, model.theta, np.zeros((40, 2), np.float32), ring, None, 2)
 print(len(layers.aggregate_tile._cache._cache_file._load_index()))
 """
 

@@ -154,7 +154,7 @@ def _two_inputs(XT, k, m, GYT, gW):
     sums per pass over the nodes, every load shared by two or four of them, eight independent FMA
     chains in flight (four left an Intel core waiting on their latency:
     docs/evidence/speed.md#shorter-chains-for-intel-cores).  Indices, not row views, as in
-    `_partial_product`; still a call of its own (inlining it too was not tried)."""
+    `_partial_product`."""
     c, n = GYT.shape
     zero = GYT.dtype.type(0)
     c4 = c - c % 4
