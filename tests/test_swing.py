@@ -1,6 +1,7 @@
 """Power grids (docs/systems.md#swing): the swing equation against an independent computation, its
 operating point, the refusals of grids without one, the real IEEE cases (when PYPOWER, the extra
 grids, is installed), the synthetic family's coverage of them, and their scenes' files."""
+import json
 import sys
 from dataclasses import replace
 
@@ -335,3 +336,14 @@ def test_cli_generates_ieee14(tmp_path):
     assert t.attrs["grid_case"] == "case14" and t.attrs["grid_bus_numbers"].tolist() == list(range(1, 15))
     with h5py.File(out, "r") as f:
         assert int(f.attrs["format_version"]) == 3 and f["node_attrs"].shape == (14, 3)  # one grid for all
+
+
+def test_recipe_auto_learns_a_grid_on_windows_first_and_the_flag_wins(tmp_path):
+    assert cli("generate", "grid10", "-o", tmp_path / "g.h5", "-B", 4, "-T", 25, "--workers", 1).exit_code == 0
+    for name, flags, window in (("auto", (), 10), ("full", ("--curriculum", "full"), 25)):
+        out = tmp_path / f"{name}.h5"
+        r = cli("train", tmp_path / "g.h5", "-o", out, "--epochs", 1, "--hidden", 8, *flags)
+        assert r.exit_code == 0, r.output
+        assert ("curriculum (10, 20)" in r.output) == (name == "auto")
+        epochs = [json.loads(line) for line in open(f"{out}.log.jsonl") if '"epoch": 1,' in line]
+        assert epochs[0]["window"] == window
