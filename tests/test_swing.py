@@ -347,4 +347,4 @@ def test_recipe_auto_learns_a_grid_on_windows_first_and_the_flag_wins(tmp_path):
         assert r.exit_code == 0, r.output
         assert ("curriculum (10, 20)" in r.output) == (name == "auto")
         log = [json.loads(line) for line in (tmp_path / f"{name}.h5.log.jsonl").read_text().splitlines()]
-        assert [r["window"] for r in log if r["epoch"] == 1] == [window]
+        assert [e["window"] for e in log if e["epoch"] == 1] == [window]
