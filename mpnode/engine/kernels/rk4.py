@@ -576,7 +576,10 @@ def vjp_stagewise(theta, dims, l2s, U, graph, tgraph, nsub, hstep, states, GX, g
                         send_vjp_tile(theta, dims, l2s, gS, gh0, i0, i1, 0, C, stage, i0, i1, gthetas[k], gin, GU[t])
                     else:
                         transpose_tile(gagg, tgraph[0], tgraph[1], tgraph[2], self_msg, i0, i1, 0, gin, dx)
-                    add_into(gnew[i0:i1], gin[i0:i1])
+                    # not add_into: the raise of its shape check would make this loop run serially
+                    for i in range(i0, i1):
+                        for d in range(gin.shape[1]):
+                            gnew[i, d] += gin[i, d]
                 gnext, gin = gin, gnext
             _copy_rows(gz, gnew)
     _copy_rows(gx0, gz[:, :dx])
