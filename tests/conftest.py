@@ -12,9 +12,9 @@ Compiling the kernels on both cores.  With a cold numba cache (a fresh clone, or
 mpnode/engine/kernels), compiling dominates the suite: each of the four drivers (rollout and
 VJP, block and stagewise) is compiled for float32 and for float64 and for each field (MP-NODE,
 L2S), and numba compiles one function at a time.  So the first call to a driver in this
-process (`_KernelWarmUp`) starts two processes, tests/warm_kernels.py float64 and float32,
-which compile the drivers into numba's on-disk cache on one core each, waits for them, and goes
-on: numba then loads each driver
+process (`_KernelWarmUp`) starts two processes of tests/warm_kernels.py, which compile the
+drivers the default tier calls (`WARM_UP_JOBS`) into numba's on-disk cache on one core each,
+waits for them, and goes on: numba then loads each driver
 from the cache, as in any second run, so the tests run the very code they would have compiled
 (same functions, same types, same flags).  With a warm cache the two processes only load it.
 The warm-up cannot stall or change the suite: if a process fails, or has not finished after
@@ -49,12 +49,19 @@ from mpnode.training import batches
 
 DRIVER_ENTRY_POINTS = ("rollout_blocks", "rollout_stagewise", "vjp_blocks", "vjp_stagewise")
 WARM_UP = Path(__file__).with_name("warm_kernels.py")
+#: the two warm-up processes' jobs (tests/warm_kernels.py): the drivers the default tier calls, each
+#: process about half the compile (docs/evidence/test-suite.md).  float32's block VJP that recomputes the
+#: stages and L2S's float32 stagewise VJP are left out: no test of the tier calls them.
+WARM_UP_JOBS = (("float64:mpnode:blocks", "float64:mpnode:stagewise", "float64:mpnode:recompute",
+                 "float64:l2s:stagewise", "float64:l2s:recompute"),
+                ("float32:mpnode:blocks", "float32:mpnode:stagewise", "float32:l2s:blocks",
+                 "float32:l2s:stagewise_rollout", "float64:l2s:blocks"))
 #: seconds to wait for the warm-up processes: a safety net, several times what they take on a busy 2-core machine
 WARM_UP_TIMEOUT = 900
 
 
 class _KernelWarmUp:
-    """Compile the drivers of both dtypes at once, in two processes, before the first driver call."""
+    """Compile the drivers the tests call, in two processes at once, before the first driver call."""
 
     def __init__(self):
         self.pid = os.getpid()  # forked children (process pools) just call the kernels
@@ -84,17 +91,17 @@ class _KernelWarmUp:
                                     "what they needed themselves")
 
     def compile_both(self):
-        """Run tests/warm_kernels.py for each dtype at once: (what each printed last, what went wrong)."""
+        """Run tests/warm_kernels.py for each list of jobs at once: (what each printed last, what went wrong)."""
         done, failed = [], []
         with tempfile.TemporaryDirectory() as tmp:
             procs = {}
             try:
-                for dtype in ("float64", "float32"):
-                    log = open(os.path.join(tmp, dtype + ".log"), "w+")
-                    procs[dtype] = (subprocess.Popen([sys.executable, str(WARM_UP), dtype],
-                                                     stdin=subprocess.DEVNULL, stdout=log, stderr=log), log)
+                for k, jobs in enumerate(WARM_UP_JOBS):
+                    log = open(os.path.join(tmp, f"{k}.log"), "w+")
+                    procs[f"process {k + 1}"] = (subprocess.Popen([sys.executable, str(WARM_UP), *jobs],
+                                                                  stdin=subprocess.DEVNULL, stdout=log, stderr=log), log)
                 deadline = time.monotonic() + WARM_UP_TIMEOUT
-                for dtype, (proc, log) in procs.items():
+                for name, (proc, log) in procs.items():
                     try:
                         status = proc.wait(timeout=max(0.0, deadline - time.monotonic()))
                         problem = f"exit status {status}" if status else None
@@ -103,7 +110,7 @@ class _KernelWarmUp:
                     log.seek(0)
                     last = (log.read().strip().splitlines() or ["no output"])[-1]
                     if problem:
-                        failed.append(f"{dtype}: {problem}: {last}")
+                        failed.append(f"{name}: {problem}: {last}")
                     else:
                         done.append(last)
             finally:
