@@ -9,12 +9,12 @@ Fixtures (``pytest --fixtures tests`` lists them with their docstrings):
 Plain helpers for the engine tests (the NumPy reference, test graphs) are in engine_helpers.py.
 
 Compiling the kernels on both cores.  With a cold numba cache (a fresh clone, or an edit to
-mpnode/engine/kernels), compiling dominates the suite: each of the four drivers (rollout and
-VJP, block and stagewise) is compiled for float32 and for float64 and for each field (MP-NODE,
-L2S), and numba compiles one function at a time.  So the first call to a driver in this
-process (`_KernelWarmUp`) starts two processes of tests/warm_kernels.py, which compile the
-drivers the default tier calls (`WARM_UP_JOBS`) into numba's on-disk cache on one core each,
-waits for them, and goes on: numba then loads each driver
+mpnode/engine/kernels), compiling dominates the suite: each of the five drivers (rollout and
+VJP, block and stagewise, and the block VJP that recomputes the stages) is compiled for float32
+and for float64 and for each field (MP-NODE, L2S), and numba compiles one function at a time.
+So the first call to a driver in this process (`_KernelWarmUp`) starts two processes of
+tests/warm_kernels.py, which compile the drivers the default tier calls (`WARM_UP_JOBS`) into
+numba's on-disk cache on one core each, waits for them, and goes on: numba then loads each driver
 from the cache, as in any second run, so the tests run the very code they would have compiled
 (same functions, same types, same flags).  With a warm cache the two processes only load it.
 The warm-up cannot stall or change the suite: if a process fails, or has not finished after
@@ -98,8 +98,9 @@ class _KernelWarmUp:
             try:
                 for k, jobs in enumerate(WARM_UP_JOBS):
                     log = open(os.path.join(tmp, f"{k}.log"), "w+")
-                    procs[f"process {k + 1}"] = (subprocess.Popen([sys.executable, str(WARM_UP), *jobs],
-                                                                  stdin=subprocess.DEVNULL, stdout=log, stderr=log), log)
+                    command = [sys.executable, str(WARM_UP), *jobs]
+                    procs[f"process {k + 1}"] = (subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=log,
+                                                                  stderr=log), log)
                 deadline = time.monotonic() + WARM_UP_TIMEOUT
                 for name, (proc, log) in procs.items():
                     try:
@@ -112,7 +113,7 @@ class _KernelWarmUp:
                     if problem:
                         failed.append(f"{name}: {problem}: {last}")
                     else:
-                        done.append(last)
+                        done.append(f"{name}: {last}")
             finally:
                 for proc, log in procs.values():
                     if proc.poll() is None:
@@ -129,8 +130,8 @@ def pytest_configure(config):
     # the kernels compiled as the `mpnode` command compiles them (mpnode.engine.codegen), so that the
     # suite, its warm-up and the commands it starts share one set of compiled code
     ask_for_wide_vectors()
-    # the warm-up compiles every driver ahead, so neither the tests nor the commands they start
-    # compile a VJP in a process of their own (tests/test_compiling.py switches it back on)
+    # the warm-up compiles ahead every driver the tests call (WARM_UP_JOBS), so neither the tests nor the
+    # commands they start compile a VJP in a process of their own (tests/test_compiling.py switches it back on)
     os.environ[compiling.VARIABLE] = "0"
     from mpnode.engine import kernels
 
