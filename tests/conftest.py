@@ -51,11 +51,10 @@ DRIVER_ENTRY_POINTS = ("rollout_blocks", "rollout_stagewise", "vjp_blocks", "vjp
 WARM_UP = Path(__file__).with_name("warm_kernels.py")
 #: the two warm-up processes' jobs (tests/warm_kernels.py): the drivers the default tier calls, each
 #: process about half the compile (docs/evidence/test-suite.md).  float32's block VJP that recomputes the
-#: stages and L2S's float32 stagewise VJP are left out: no test of the tier calls them.
-WARM_UP_JOBS = (("float64:mpnode:blocks", "float64:mpnode:stagewise", "float64:mpnode:recompute",
-                 "float64:l2s:stagewise", "float64:l2s:recompute"),
-                ("float32:mpnode:blocks", "float32:mpnode:stagewise", "float32:l2s:blocks",
-                 "float32:l2s:stagewise_rollout", "float64:l2s:blocks"))
+#: stages and its stagewise drivers are left out: no test of the tier calls them (engine_helpers.DRIVERS_AND_DTYPES).
+WARM_UP_JOBS = (("float64:mpnode:stagewise", "float64:l2s:stagewise", "float64:mpnode:recompute",
+                 "float64:l2s:recompute"),
+                ("float64:mpnode:blocks", "float64:l2s:blocks", "float32:mpnode:blocks", "float32:l2s:blocks"))
 #: seconds to wait for the warm-up processes: a safety net, several times what they take on a busy 2-core machine
 WARM_UP_TIMEOUT = 900
 

@@ -6,11 +6,30 @@ semantics of the model format (docs/model-format.md) and sharing nothing with
 mpnode.engine.kernels; test_engine checks its aggregation on its own.
 """
 import numpy as np
+import pytest
 
 from mpnode.base.graph import Graph, block_diagonal
 from mpnode.engine import layouts
 from mpnode.engine import numpy_path as numpy_engine
 from mpnode.engine.spec import Aggregation, FieldSpec, default_aggregation
+
+
+# ---------------------------------------------------------------------------
+# Drivers and precisions
+# ---------------------------------------------------------------------------
+def _slow_if_float32_stagewise(driver, dtype):
+    return [pytest.mark.slow] if (driver, np.dtype(dtype)) == ("stagewise", np.float32) else []
+
+
+#: ``driver`` (the conftest fixture, indirect) and ``dtype`` for a test that runs in both precisions.
+#: float32's stagewise drivers are tested in the slow tier: they are the largest compile a cold default
+#: tier would pay for one path (docs/evidence/test-suite.md), and float64 puts the same source through
+#: every property of the default tier
+DRIVERS_AND_DTYPES = [pytest.param(d, t, id=f"{d}-{np.dtype(t).name}", marks=_slow_if_float32_stagewise(d, t))
+                      for d in ("blocks", "stagewise") for t in (np.float32, np.float64)]
+#: ``driver`` for a test in float32 alone
+DRIVERS_IN_FLOAT32 = [pytest.param(d, id=d, marks=_slow_if_float32_stagewise(d, np.float32))
+                      for d in ("blocks", "stagewise")]
 
 
 # ---------------------------------------------------------------------------

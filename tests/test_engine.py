@@ -16,6 +16,8 @@ import numba
 import numpy as np
 import pytest
 from engine_helpers import (
+    DRIVERS_AND_DTYPES,
+    DRIVERS_IN_FLOAT32,
     loss_ref,
     make_graph,
     mixed_graph,
@@ -533,6 +535,7 @@ def test_batch_equals_graphs_one_by_one():
 # ---------------------------------------------------------------------------
 # 7. float32 agrees with float64 to float32 precision
 # ---------------------------------------------------------------------------
+@pytest.mark.parametrize("driver", DRIVERS_IN_FLOAT32, indirect=True)
 def test_float32_agrees_with_float64_over_50_steps(driver):
     """Bound: float32 unit roundoff u = 6e-8.  A 50-step rollout makes ~50 * 4 stages of
     O(10) roundings per value (dot products of length H = 16, the few-ulp rational tanh,
@@ -605,7 +608,7 @@ def test_zero_messages_gives_exactly_zero_message_gradients(driver):
 # ---------------------------------------------------------------------------
 # 10. Determinism
 # ---------------------------------------------------------------------------
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("driver,dtype", DRIVERS_AND_DTYPES, indirect=["driver"])
 def test_gradient_is_bit_identical_across_calls(driver, dtype):
     rng = np.random.default_rng(25)
     graph = block_diagonal([make_graph(rng, 9), make_graph(rng, 150), make_graph(rng, 40), make_graph(rng, 9)])

@@ -4,7 +4,7 @@ the messages it shows are the integrated ones; its errors say what to fix."""
 import networkx as nx
 import numpy as np
 import pytest
-from engine_helpers import make_graph, random_model, rollout_ref
+from engine_helpers import DRIVERS_AND_DTYPES, make_graph, random_model, rollout_ref
 
 from mpnode import InputError, Simulator
 from mpnode.base.graph import Graph
@@ -49,7 +49,7 @@ def check_steps_equal_rollout(name, du, dtype, backend):
     assert np.abs(x[:, -1] - x[:, 0]).max() > 1e-2  # it moves
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("driver,dtype", DRIVERS_AND_DTYPES, indirect=["driver"])
 @pytest.mark.parametrize("du", [0, DU], ids=["no-controls", "controls"])
 @pytest.mark.parametrize("name", KINDS)
 def test_steps_equal_rollout_bit_for_bit(driver, name, du, dtype):
