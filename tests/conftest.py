@@ -24,8 +24,10 @@ the wrapper passes every call through unchanged.  What it saves: docs/evidence/t
 
 The two tiers: ``pytest`` runs the tests not marked ``slow`` (setup.cfg deselects them), each
 meant to take at most DEFAULT_TIER_SECONDS; ``pytest -m slow`` runs the rest, slow by nature
-(end-to-end runs of the docs and the paper suite, killed and resumed runs, Dask clusters).  The
-terminal summary names any test outside the slow tier that took longer.
+(end-to-end runs of the docs and the paper suite, killed and resumed runs, Dask clusters), and the
+tests of float32's stagewise drivers, whose compile no test of the default tier needs
+(engine_helpers.DRIVERS_AND_DTYPES).  The terminal summary names any test outside the slow tier
+that took longer.
 """
 import copy
 import os

@@ -2,10 +2,9 @@
 jobs at a time: python tests/warm_kernels.py float32:mpnode:blocks float64:l2s:recompute ...
 
 A job is DTYPE:FIELD:DRIVERS, where DRIVERS is ``blocks`` (the block rollout and its VJP from kept
-stage caches), ``stagewise`` (the stagewise rollout and its VJP), ``stagewise_rollout`` (the
-stagewise rollout alone) or ``recompute`` (the block VJP that recomputes the stages).  Every model
-kind and size of a field runs the same compiled driver for a dtype, so one tiny rollout and VJP
-per job compiles everything the tests call through it.
+stage caches), ``stagewise`` (the stagewise rollout and its VJP) or ``recompute`` (the block VJP
+that recomputes the stages).  Every model kind and size of a field runs the same compiled driver
+for a dtype, so one tiny rollout and VJP per job compiles everything the tests call through it.
 
 tests/conftest.py runs this in two processes at once, the first time a test calls the compiled
 kernels (see "Compiling the kernels on both cores" there), the jobs split between them so that
@@ -22,7 +21,7 @@ from mpnode.engine import compiling
 #: exit status when numba's cache writes cannot be serialised here: nothing was compiled, and
 #: the tests compile the kernels themselves, as they would without this script
 CANNOT_LOCK = 3
-DRIVERS = ("blocks", "stagewise", "stagewise_rollout", "recompute")
+DRIVERS = ("blocks", "stagewise", "recompute")
 
 
 def warm(job):
@@ -41,11 +40,9 @@ def warm(job):
     graph = Graph.from_edges(3, [(0, 1), (1, 2)])
     messages = {"message_dim": 2} if field == "mpnode" else {}
     model = Model.create(state_dim=2, hidden=4, dt=0.1, kind=field, **messages)
-    driver = "blocks" if drivers == "blocks" else "stagewise"
     x, vjp = forward_with_vjp(model.spec, model.theta.astype(dtype), np.zeros((3, 2)), graph, None, 1,
-                              driver=driver)
-    if drivers != "stagewise_rollout":
-        vjp(np.zeros_like(x))
+                              driver=drivers)
+    vjp(np.zeros_like(x))
 
 
 if __name__ == "__main__":
