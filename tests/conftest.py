@@ -131,8 +131,9 @@ def pytest_configure(config):
     # the kernels compiled as the `mpnode` command compiles them (mpnode.engine.codegen), so that the
     # suite, its warm-up and the commands it starts share one set of compiled code
     ask_for_wide_vectors()
-    # the warm-up compiles ahead every driver the tests call (WARM_UP_JOBS), so neither the tests nor the
-    # commands they start compile a VJP in a process of their own (tests/test_compiling.py switches it back on)
+    # the warm-up compiles ahead every driver the default tier calls (WARM_UP_JOBS), so neither its tests nor
+    # the commands they start compile a VJP in a process of their own (tests/test_compiling.py switches it
+    # back on); the slow tier's float32 stagewise cases compile theirs in this process
     os.environ[compiling.VARIABLE] = "0"
     from mpnode.engine import kernels
 

@@ -23,8 +23,8 @@ def _slow_if_float32_stagewise(driver, dtype):
 
 #: ``driver`` (the conftest fixture, indirect) and ``dtype`` for a test that runs in both precisions.
 #: float32's stagewise drivers are tested in the slow tier: they are the largest compile a cold default
-#: tier would pay for one path (docs/evidence/test-suite.md), and float64 puts the same source through
-#: every property of the default tier
+#: tier would pay for one path (docs/evidence/test-suite.md); float64 runs the same source through every
+#: property of the default tier
 DRIVERS_AND_DTYPES = [pytest.param(d, t, id=f"{d}-{np.dtype(t).name}", marks=_slow_if_float32_stagewise(d, t))
                       for d in ("blocks", "stagewise") for t in (np.float32, np.float64)]
 #: ``driver`` for a test in float32 alone
